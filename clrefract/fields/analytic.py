@@ -1,0 +1,320 @@
+"""Analytic index fields and their float64 NumPy references.
+
+Parameter layouts match kernels_cl/field_analytic.cl.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from ..errors import ClrefractError
+from .base import Field, _smoother, _smoother_d
+
+Vec3 = tuple[float, float, float]
+
+
+class AnalyticField(Field):
+    source = "field_analytic.cl"
+
+    def defines(self) -> dict:
+        return {f"FIELD_{self.kind.upper()}": 1}
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, **{k: _plain(v) for k, v in asdict(self).items()}}
+
+
+def _plain(v):
+    if isinstance(v, tuple | list):
+        return [_plain(x) for x in v]
+    return v
+
+
+@dataclass
+class Luneburg(AnalyticField):
+    """eta = sqrt(2 - r^2/R^2) inside the sphere of radius R, 1 outside."""
+
+    radius: float = 20.0
+    center: Vec3 = (0.0, 0.0, 0.0)
+    kind = "luneburg"
+
+    def params(self):
+        return np.array([*self.center, self.radius], float)
+
+    @property
+    def eta_max(self):
+        return float(np.sqrt(2.0))
+
+    def eval(self, pts):
+        p = pts - np.asarray(self.center)
+        r2 = (p * p).sum(1) / self.radius**2
+        inside = r2 < 1
+        eta = np.sqrt(np.where(inside, 2 - r2, 1.0))
+        k = np.where(inside, -1.0 / (self.radius**2 * eta), 0.0)
+        return eta, k[:, None] * p
+
+
+@dataclass
+class Maxwell(AnalyticField):
+    """Maxwell fish-eye: eta = n0 / (1 + r^2/R^2) (never 1: use with propagate, not trace)."""
+
+    radius: float = 20.0
+    n0: float = 2.0
+    center: Vec3 = (0.0, 0.0, 0.0)
+    kind = "maxwell"
+
+    def params(self):
+        return np.array([*self.center, self.radius, self.n0], float)
+
+    @property
+    def eta_max(self):
+        return float(self.n0)
+
+    def eval(self, pts):
+        p = pts - np.asarray(self.center)
+        q = 1 + (p * p).sum(1) / self.radius**2
+        eta = self.n0 / q
+        return eta, (-2 * eta / (q * self.radius**2))[:, None] * p
+
+
+@dataclass
+class Fibre(AnalyticField):
+    """Parabolic (Selfoc) fibre along z: eta^2 = n0^2 (1 - a^2 rho^2)."""
+
+    n0: float = 1.5
+    a: float = 0.02
+    center: tuple[float, float] = (0.0, 0.0)
+    kind = "fibre"
+
+    def params(self):
+        return np.array([*self.center, self.n0, self.a], float)
+
+    @property
+    def eta_max(self):
+        return float(self.n0)
+
+    def eval(self, pts):
+        p = pts[:, :2] - np.asarray(self.center)
+        q = np.maximum(1 - self.a**2 * (p * p).sum(1), 1e-12)
+        eta = self.n0 * np.sqrt(q)
+        k = -self.n0**2 * self.a**2 / eta
+        grad = np.zeros_like(pts)
+        grad[:, :2] = k[:, None] * p
+        return eta, grad
+
+
+@dataclass
+class Blobs(AnalyticField):
+    """eta = 1 + sum_k a_k exp(-|x - c_k|^2 / 2 s_k^2): gas plumes, eta - 1 down to 1e-4."""
+
+    centers: list = field(default_factory=lambda: [[0.0, 0.0, 0.0]])
+    amplitudes: list = field(default_factory=lambda: [0.01])
+    sigmas: list = field(default_factory=lambda: [10.0])
+    kind = "blobs"
+
+    def __post_init__(self):
+        c = np.asarray(self.centers, float).reshape(-1, 3)
+        a = np.asarray(self.amplitudes, float).ravel()
+        s = np.asarray(self.sigmas, float).ravel()
+        if not (len(c) == len(a) == len(s)) or len(c) == 0:
+            raise ClrefractError("blobs: centers, amplitudes and sigmas must have equal length")
+        if np.any(s <= 0):
+            raise ClrefractError("blobs: every sigma must be positive")
+        self.centers, self.amplitudes, self.sigmas = c.tolist(), a.tolist(), s.tolist()
+
+    @classmethod
+    def random(cls, n: int, amplitude: float, seed: int = 0, extent: float = 25.0):
+        rng = np.random.default_rng(seed)
+        return cls(
+            centers=rng.uniform(-extent, extent, (n, 3)).tolist(),
+            amplitudes=(amplitude * rng.uniform(0.5, 1.0, n)).tolist(),
+            sigmas=rng.uniform(6.0, 12.0, n).tolist(),
+        )
+
+    def defines(self):
+        return {"FIELD_BLOBS": 1, "NBLOBS": len(self.amplitudes)}
+
+    def params(self):
+        c = np.asarray(self.centers)
+        return np.column_stack([c, self.amplitudes, self.sigmas]).ravel()
+
+    @property
+    def eta_max(self):
+        return 1.0 + float(np.sum(np.maximum(self.amplitudes, 0)))
+
+    def eval(self, pts):
+        eta = np.ones(len(pts))
+        grad = np.zeros_like(pts)
+        for c, a, s in zip(self.centers, self.amplitudes, self.sigmas):
+            p = pts - np.asarray(c)
+            g = a * np.exp(-0.5 * (p * p).sum(1) / s**2)
+            eta += g
+            grad -= (g / s**2)[:, None] * p
+        return eta, grad
+
+
+class SmoothSolid(AnalyticField):
+    """eta = 1 + (n - 1) S(1/2 - sd/w): n inside, 1 outside, a C2 ramp of width w across
+    the surface sd = 0 (sd the signed distance, negative inside)."""
+
+    eta: float
+    width: float
+
+    def _check(self):
+        if self.width <= 0:
+            raise ClrefractError(f"{self.kind}: interface width must be positive")
+        if self.eta < 1:
+            raise ClrefractError(f"{self.kind}: eta must be at least 1")
+
+    @property
+    def eta_max(self):
+        return float(self.eta)
+
+    def sdf(self, pts):
+        """Signed distance (n,) and its gradient (n, 3)."""
+        raise NotImplementedError
+
+    def eval(self, pts):
+        sd, n = self.sdf(pts)
+        s = 0.5 - sd / self.width
+        dn = self.eta - 1.0
+        return 1 + dn * _smoother(s), (-dn * _smoother_d(s) / self.width)[:, None] * n
+
+
+@dataclass
+class Sphere(SmoothSolid):
+    radius: float = 20.0
+    eta: float = 1.5
+    width: float = 1.0
+    center: Vec3 = (0.0, 0.0, 0.0)
+    kind = "sphere"
+
+    def __post_init__(self):
+        self._check()
+
+    def params(self):
+        return np.array([*self.center, self.radius, self.eta, self.width], float)
+
+    def sdf(self, pts):
+        p = pts - np.asarray(self.center)
+        r = np.linalg.norm(p, axis=1)
+        return r - self.radius, p / np.maximum(r, 1e-300)[:, None]
+
+
+def rotation_xyz(deg: Vec3) -> np.ndarray:
+    """Rotation matrix (local -> world) from successive rotations about x, y, z in degrees."""
+    ax, ay, az = np.radians(deg)
+    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
+    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
+    rz = np.array([[np.cos(az), -np.sin(az), 0], [np.sin(az), np.cos(az), 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+_C30 = np.sqrt(3.0) / 2
+
+
+@dataclass
+class Prism(SmoothSolid):
+    """Equilateral triangular prism (side, length), axis along local z, rotated by `tilt`."""
+
+    side: float = 40.0
+    length: float = 40.0
+    eta: float = 1.5
+    width: float = 1.0
+    tilt: Vec3 = (35.0, 20.0, 10.0)
+    center: Vec3 = (0.0, 0.0, 0.0)
+    kind = "prism"
+
+    def __post_init__(self):
+        self._check()
+
+    @property
+    def world_to_local(self):
+        return rotation_xyz(self.tilt).T
+
+    def params(self):
+        return np.array(
+            [*self.center, *self.world_to_local.ravel(), self.side, self.length, self.eta,
+             self.width],
+            float,
+        )
+
+    def sdf(self, pts):
+        m = self.world_to_local
+        loc = (pts - np.asarray(self.center)) @ m.T
+        rin = self.side / (2 * np.sqrt(3))
+        normals = np.array([[0, 1, 0], [-_C30, -0.5, 0], [_C30, -0.5, 0]], float)
+        d = np.column_stack(
+            [loc @ normals.T - rin, np.abs(loc[:, 2]) - 0.5 * self.length]
+        )
+        k = np.argmax(d, axis=1)
+        n_loc = np.zeros_like(loc)
+        for j in range(3):
+            n_loc[k == j] = normals[j]
+        cap = k == 3
+        n_loc[cap] = np.column_stack(
+            [np.zeros(cap.sum()), np.zeros(cap.sum()), np.sign(loc[cap, 2])]
+        )
+        return d[np.arange(len(d)), k], n_loc @ m
+
+
+@dataclass
+class Drop(SmoothSolid):
+    """Water drop: revolution about z of r(t) = R sin t sin^2(t/2), z(t) = H cos t."""
+
+    R: float = 18.0
+    H: float = 22.0
+    eta: float = 1.33
+    width: float = 1.0
+    center: Vec3 = (0.0, 0.0, 0.0)
+    kind = "drop"
+    samples = 24
+    newton = 5
+
+    def __post_init__(self):
+        self._check()
+
+    def params(self):
+        return np.array([*self.center, self.R, self.H, self.eta, self.width], float)
+
+    def profile(self, t):
+        return 0.5 * self.R * np.sin(t) * (1 - np.cos(t)), self.H * np.cos(t)
+
+    def sdf(self, pts):
+        R, H = self.R, self.H
+        p = pts - np.asarray(self.center)
+        rho = np.hypot(p[:, 0], p[:, 1])
+        z = p[:, 2]
+        ts = np.pi * np.arange(self.samples + 1) / self.samples
+        rs, zs = self.profile(ts)
+        d2 = (rs[None] - rho[:, None]) ** 2 + (zs[None] - z[:, None]) ** 2
+        t = ts[np.argmin(d2, axis=1)]
+        for _ in range(self.newton):
+            ct, st = np.cos(t), np.sin(t)
+            c2t, s2t = ct * ct - st * st, 2 * st * ct
+            r, zc = 0.5 * R * st * (1 - ct), H * ct
+            r1, z1 = 0.5 * R * (ct - c2t), -H * st
+            r2, z2 = 0.5 * R * (2 * s2t - st), -H * ct
+            g = (r - rho) * r1 + (zc - z) * z1
+            dg = r1 * r1 + z1 * z1 + (r - rho) * r2 + (zc - z) * z2
+            tn = t - g / np.where(np.abs(dg) < 1e-12, 1.0, dg)
+            t = np.clip(np.where(dg <= 0, t, tn), 0, np.pi)
+        ct, st = np.cos(t), np.sin(t)
+        er, ez = rho - 0.5 * R * st * (1 - ct), z - H * ct
+        dist = np.hypot(er, ez)
+        tz = np.arccos(np.clip(z / H, -1, 1))
+        rz = 0.5 * R * np.sin(tz) * (1 - np.cos(tz))
+        sgn = np.where((np.abs(z) < H) & (rho < rz), -1.0, 1.0)
+        c2t = ct * ct - st * st
+        onx, onz = H * st, 0.5 * R * (ct - c2t)
+        on = np.maximum(np.hypot(onx, onz), 1e-300)
+        far = dist > 1e-4 * (R + H)
+        inv = 1 / np.maximum(dist, 1e-300)
+        gr = np.where(far, sgn * er * inv, onx / on)
+        gz = np.where(far, sgn * ez * inv, onz / on)
+        irho = np.where(rho > 1e-12, 1 / np.maximum(rho, 1e-300), 0.0)
+        return sgn * dist, np.column_stack([gr * p[:, 0] * irho, gr * p[:, 1] * irho, gz])
+
+
+ANALYTIC = {c.kind: c for c in (Luneburg, Maxwell, Fibre, Blobs, Sphere, Prism, Drop)}

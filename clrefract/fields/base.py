@@ -1,0 +1,100 @@
+"""What every index field gives the tracer: build defines, parameters, and a NumPy reference."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ClrefractError
+
+
+@dataclass(frozen=True)
+class Box:
+    """Axis-aligned bounding box in mm; learned fields are 1 within `margin` of its walls."""
+
+    lo: tuple[float, float, float] = (-50.0, -50.0, -50.0)
+    hi: tuple[float, float, float] = (50.0, 50.0, 50.0)
+    margin: float = 4.0
+
+    def __post_init__(self):
+        lo, hi = np.asarray(self.lo, float), np.asarray(self.hi, float)
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(hi > lo):
+            raise ClrefractError(f"box must have lo < hi on every axis, got {self.lo}, {self.hi}")
+        if not 0 < 2 * self.margin < float(np.min(hi - lo)) / 2:
+            raise ClrefractError(f"box margin {self.margin} must be positive and small")
+
+    @property
+    def size(self) -> np.ndarray:
+        return np.asarray(self.hi, float) - np.asarray(self.lo, float)
+
+    def defines(self) -> dict:
+        d = {f"BOX_LO_{a}": repr(float(v)) for a, v in zip("XYZ", self.lo)}
+        d.update({f"BOX_HI_{a}": repr(float(v)) for a, v in zip("XYZ", self.hi)})
+        d["MARGIN"] = repr(float(self.margin))
+        return d
+
+    def to_dict(self) -> dict:
+        return {"lo": list(self.lo), "hi": list(self.hi), "margin": self.margin}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Box:
+        return cls(tuple(map(float, d["lo"])), tuple(map(float, d["hi"])), float(d["margin"]))
+
+
+def _smoother(t):
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * t * (t * (t * 6 - 15) + 10)
+
+
+def _smoother_d(t):
+    inside = (t > 0) & (t < 1)
+    return np.where(inside, 30 * t * t * (t * (t - 2) + 1), 0.0)
+
+
+def box_window(box: Box, pts: np.ndarray):
+    """W(x) and grad W: 0 within margin of a wall, 1 beyond twice the margin (C2)."""
+    lo, hi, m = np.asarray(box.lo), np.asarray(box.hi), box.margin
+    d0 = (pts - lo) / m - 1
+    d1 = (hi - pts) / m - 1
+    s0, s1 = _smoother(d0), _smoother(d1)
+    a = s0 * s1  # (n, 3) per-axis factors
+    ga = (_smoother_d(d0) * s1 - s0 * _smoother_d(d1)) / m
+    w = a.prod(axis=1)
+    grad = np.stack(
+        [ga[:, 0] * a[:, 1] * a[:, 2], a[:, 0] * ga[:, 1] * a[:, 2], a[:, 0] * a[:, 1] * ga[:, 2]],
+        axis=1,
+    )
+    return w, grad
+
+
+class Field:
+    """An index-of-refraction field eta(x) with an OpenCL and a NumPy implementation."""
+
+    kind: str = ""
+    source: str = ""
+
+    def defines(self) -> dict:
+        raise NotImplementedError
+
+    def params(self) -> np.ndarray:
+        """Small parameter vector (fp in the kernels), float64."""
+        raise NotImplementedError
+
+    def data(self) -> np.ndarray:
+        """Bulk data (fd in the kernels): grid values, tables, weights."""
+        return np.zeros(1)
+
+    @property
+    def eta_max(self) -> float:
+        raise NotImplementedError
+
+    def eval(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Float64 reference: eta (n,) and grad eta (n, 3) at points (n, 3)."""
+        raise NotImplementedError
+
+    def to_dict(self) -> dict:
+        raise NotImplementedError
+
+    def uses_window(self) -> bool:
+        return False

@@ -1,0 +1,163 @@
+"""Forward curved-ray tracing of a field on one OpenCL device."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from .errors import ClrefractError
+from .fields.base import Box, Field
+from .runtime import Runtime, default_runtime
+
+INTEGRATORS = ("rkn4", "rk4", "euler")
+SOURCES = ["common.h", None, "trace.cl"]
+
+
+class Status(IntEnum):
+    EXITED = 0
+    MISSED = 1
+    TRAPPED = 2
+    NONFINITE = 3
+
+
+@dataclass
+class TraceResult:
+    position: np.ndarray  # (n, 3) exit point on the box, or the origin for missed rays
+    direction: np.ndarray  # (n, 3) unit exit direction
+    speed: np.ndarray  # (n,) |v| at exit: equals eta there (1 on the box) up to drift
+    status: np.ndarray  # (n,) Status codes
+    steps: np.ndarray  # (n,) integration steps taken
+
+
+class Tracer:
+    """Traces rays through `field` inside `box` with a fixed step of the optical-path parameter.
+
+    step: the increment of sigma (arc length / eta) per integrator step, in mm.
+    lanes: rays per work-item; None picks the device's default (16 on CPUs, 1 on GPUs).
+    """
+
+    def __init__(
+        self,
+        field: Field,
+        box: Box | None = None,
+        step: float = 0.5,
+        integrator: str = "rkn4",
+        precision: str = "float32",
+        lanes: int | None = None,
+        max_steps: int | None = None,
+        runtime: Runtime | None = None,
+    ):
+        if not (isinstance(step, int | float) and math.isfinite(step) and step > 0):
+            raise ClrefractError(f"step must be a positive number of mm, got {step!r}")
+        if integrator not in INTEGRATORS:
+            raise ClrefractError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+        self.runtime = runtime or default_runtime()
+        self.runtime.check_precision(precision)
+        self.field, self.box, self.step = field, box or Box(), float(step)
+        self.integrator, self.precision = integrator, precision
+        self.lanes = lanes or self.runtime.default_lanes(precision)
+        if self.lanes not in (1, 2, 4, 8, 16):
+            raise ClrefractError(f"lanes must be 1, 2, 4, 8 or 16, got {self.lanes}")
+        if max_steps is None:
+            # a ray bent inside the box rarely travels more than a few diagonals
+            diag = float(np.linalg.norm(self.box.size))
+            max_steps = int(math.ceil(4 * diag / self.step))
+        self.max_steps = int(max_steps)
+        self.dtype = self.runtime.real_dtype(precision)
+        defines = {**field.defines(), **self.box.defines(), "LANES": self.lanes}
+        defines[f"INTEGRATOR_{integrator.upper()}"] = 1
+        sources = [s if s is not None else field.source for s in SOURCES]
+        prg = self.runtime.build(sources, defines, precision)
+        self._k_trace = prg.trace_rays
+        self._k_propagate = prg.propagate_rays
+        self._k_eval = prg.eval_field
+        self.upload_field()
+
+    def upload_field(self) -> None:
+        """Copy the field's current parameters to the device (after the field changed)."""
+        cl = self.runtime.cl
+        mf = cl.mem_flags
+        ctx = self.runtime.context
+        self._fp = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self._real(
+            np.append(self.field.params(), 0.0)))
+        self._fd = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self._real(
+            np.append(self.field.data(), 0.0)))
+
+    def _real(self, a) -> np.ndarray:
+        return np.ascontiguousarray(a, dtype=self.dtype)
+
+    def _padded_columns(self, a: np.ndarray, what: str) -> tuple[list[np.ndarray], int]:
+        a = np.asarray(a, dtype=np.float64)
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise ClrefractError(f"{what} must have shape (n, 3), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ClrefractError(f"{what} contain non-finite values")
+        n = len(a)
+        pad = (-n) % self.lanes
+        if pad:
+            a = np.concatenate([a, np.repeat(a[-1:], pad, axis=0)])
+        return [self._real(a[:, k]) for k in range(3)], n
+
+    def _run(self, kernel, n_items: int, args, outputs):
+        cl = self.runtime.cl
+        q = self.runtime.queue
+        mf = cl.mem_flags
+        bufs = []
+        for a, is_out in args:
+            if isinstance(a, np.ndarray):
+                flags = (mf.READ_WRITE if is_out else mf.READ_ONLY) | mf.COPY_HOST_PTR
+                bufs.append(cl.Buffer(self.runtime.context, flags, hostbuf=a))
+            else:
+                bufs.append(a)
+        kernel(q, (n_items,), None, self._fp, self._fd, *bufs)
+        for a, b in zip(outputs, [b for (a_, o), b in zip(args, bufs) if o]):
+            cl.enqueue_copy(q, a, b)
+        q.finish()
+
+    def trace(self, origins: np.ndarray, directions: np.ndarray) -> TraceResult:
+        o, n = self._padded_columns(origins, "ray origins")
+        d, _ = self._padded_columns(directions, "ray directions")
+        if len(d[0]) != len(o[0]):
+            raise ClrefractError("ray origins and directions differ in number")
+        if np.any((d[0] == 0) & (d[1] == 0) & (d[2] == 0)):
+            raise ClrefractError("ray directions contain a zero vector")
+        m = len(o[0])
+        p = [np.empty(m, self.dtype) for _ in range(3)]
+        v = [np.empty(m, self.dtype) for _ in range(3)]
+        status = np.empty(m, np.int32)
+        steps = np.empty(m, np.int32)
+        scal = [(self.dtype(self.step), False), (np.int32(self.max_steps), False)]
+        args = scal + [(a, False) for a in o + d] + [(a, True) for a in p + v + [status, steps]]
+        self._run(self._k_trace, m // self.lanes, args, p + v + [status, steps])
+        vel = np.stack(v, axis=1)[:n].astype(np.float64)
+        speed = np.linalg.norm(vel, axis=1)
+        return TraceResult(
+            position=np.stack(p, axis=1)[:n].astype(np.float64),
+            direction=vel / speed[:, None],
+            speed=speed,
+            status=status[:n].copy(),
+            steps=steps[:n].copy(),
+        )
+
+    def propagate(self, x: np.ndarray, v: np.ndarray, n_steps: int):
+        """Advance states (x, v) by n_steps integrator steps, ignoring the box."""
+        xs, n = self._padded_columns(x, "positions")
+        vs, _ = self._padded_columns(v, "velocities")
+        args = [(self.dtype(self.step), False), (np.int32(n_steps), False)]
+        args += [(a, True) for a in xs + vs]
+        self._run(self._k_propagate, len(xs[0]) // self.lanes, args, xs + vs)
+        return (
+            np.stack(xs, axis=1)[:n].astype(np.float64),
+            np.stack(vs, axis=1)[:n].astype(np.float64),
+        )
+
+    def eval_field(self, pts: np.ndarray):
+        """eta (n,) and grad eta (n, 3) computed by the device kernel."""
+        xs, n = self._padded_columns(pts, "points")
+        m = len(xs[0])
+        outs = [np.empty(m, self.dtype) for _ in range(4)]
+        self._run(self._k_eval, m // self.lanes, [(a, False) for a in xs] + [(a, True) for a in outs], outs)
+        return outs[0][:n].astype(np.float64), np.stack(outs[1:], axis=1)[:n].astype(np.float64)

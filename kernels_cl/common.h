@@ -1,0 +1,92 @@
+/* Precision and lane width, fixed at build time.
+ *
+ * REAL is float or double. Each work-item carries LANES rays as one OpenCL vector (realv):
+ * PoCL vectorises explicit vector types but not loops across work-items, so on CPUs LANES is
+ * 8 or 16; on GPUs LANES is 1 and realv is a scalar. Masks come from comparisons of realv and
+ * are only combined with && || ! (which agree between scalars and vectors).
+ */
+#ifdef REAL_IS_DOUBLE
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#define REAL double
+#define REAL_EPS 1e-12
+#else
+#define REAL float
+#define REAL_EPS 1e-6f
+#endif
+
+#ifndef LANES
+#define LANES 1
+#endif
+
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
+
+#if LANES == 1
+typedef REAL realv;
+#define VLOAD(i, p) ((p)[(i)])
+#define VSTORE(v, i, p) ((p)[(i)] = (v))
+#define ANY(m) (m)
+#define SEL(a, b, m) ((m) ? (b) : (a))
+#define TO_INTV(v) ((int)(v))
+#define VSTORE_INT(v, i, p) ((p)[(i)] = (v))
+typedef int intv;
+typedef int maskv;
+#else
+typedef CAT(REAL, LANES) realv;
+typedef CAT(int, LANES) intv;
+#ifdef REAL_IS_DOUBLE
+typedef CAT(long, LANES) maskv;
+#else
+typedef CAT(int, LANES) maskv;
+#endif
+#define VLOAD(i, p) CAT(vload, LANES)((i), (p))
+#define VSTORE(v, i, p) CAT(vstore, LANES)((v), (i), (p))
+#define ANY(m) any(m)
+#define SEL(a, b, m) select((a), (b), (m))
+#define TO_INTV(v) CAT(convert_int, LANES)(v)
+#define VSTORE_INT(v, i, p) CAT(vstore, LANES)((v), (i), (p))
+#endif
+
+#define RV(c) ((realv)(c))
+
+/* Every field defines field_eval(FIELD_PARAMS, x, y, z, &gx, &gy, &gz) -> eta, with
+ * scalar parameters in fp and bulk data (grid values, tables, weights) in fd. The box
+ * (BOX_LO_X .. BOX_HI_Z) and the window MARGIN come from the build. */
+#define FIELD_PARAMS __global const REAL *restrict fp, __global const REAL *restrict fd
+#define FIELD_ARGS fp, fd
+
+/* Status codes shared with the host (clrefract.tracer.Status). */
+#define ST_EXITED 0
+#define ST_MISSED 1
+#define ST_TRAPPED 2
+#define ST_NONFINITE 3
+
+/* C2 quintic smoothstep on [0, 1] and its first two derivatives. */
+inline realv smoother(realv t) {
+    t = clamp(t, RV(0), RV(1));
+    return t * t * t * (t * (t * RV(6) - RV(15)) + RV(10));
+}
+inline realv smoother_d(realv t) {
+    realv in = SEL(RV(0), RV(1), t > RV(0) && t < RV(1));
+    return in * RV(30) * t * t * (t * (t - RV(2)) + RV(1));
+}
+
+/* Box window: 0 within MARGIN of a wall, 1 beyond 2 MARGIN; learned fields are 1 + W (g - 1)
+ * so that rays leave the box in straight lines. Returns W and its gradient. */
+inline realv box_window(realv x, realv y, realv z, realv *wx, realv *wy, realv *wz) {
+    const REAL m = (REAL)MARGIN;
+    realv dx0 = (x - RV(BOX_LO_X)) / m - RV(1), dx1 = (RV(BOX_HI_X) - x) / m - RV(1);
+    realv dy0 = (y - RV(BOX_LO_Y)) / m - RV(1), dy1 = (RV(BOX_HI_Y) - y) / m - RV(1);
+    realv dz0 = (z - RV(BOX_LO_Z)) / m - RV(1), dz1 = (RV(BOX_HI_Z) - z) / m - RV(1);
+    realv sx0 = smoother(dx0), sx1 = smoother(dx1);
+    realv sy0 = smoother(dy0), sy1 = smoother(dy1);
+    realv sz0 = smoother(dz0), sz1 = smoother(dz1);
+    realv ax = sx0 * sx1, ay = sy0 * sy1, az = sz0 * sz1;
+    realv gax = (smoother_d(dx0) * sx1 - sx0 * smoother_d(dx1)) / m;
+    realv gay = (smoother_d(dy0) * sy1 - sy0 * smoother_d(dy1)) / m;
+    realv gaz = (smoother_d(dz0) * sz1 - sz0 * smoother_d(dz1)) / m;
+    *wx = gax * ay * az;
+    *wy = ax * gay * az;
+    *wz = ax * ay * gaz;
+    return ax * ay * az;
+}

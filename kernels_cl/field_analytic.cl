@@ -1,0 +1,192 @@
+/* Analytic index fields: eta and grad eta, vectorised over LANES points.
+ * Exactly one FIELD_* define selects the field; its parameters are in fp
+ * (layouts mirror clrefract/fields/analytic.py). */
+
+#if defined(FIELD_LUNEBURG)
+/* fp: cx cy cz R.  eta = sqrt(2 - r^2/R^2) inside, 1 outside. */
+inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
+                        realv *gz) {
+    realv px = x - fp[0], py = y - fp[1], pz = z - fp[2];
+    REAL R2 = fp[3] * fp[3];
+    realv r2 = px * px + py * py + pz * pz;
+    realv inside = SEL(RV(0), RV(1), r2 < RV(R2));
+    realv eta = sqrt(RV(1) + inside * (RV(1) - r2 / R2));
+    realv k = -inside / (R2 * eta);
+    *gx = k * px;
+    *gy = k * py;
+    *gz = k * pz;
+    return eta;
+}
+
+#elif defined(FIELD_MAXWELL)
+/* fp: cx cy cz R n0.  eta = n0 / (1 + r^2/R^2). */
+inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
+                        realv *gz) {
+    realv px = x - fp[0], py = y - fp[1], pz = z - fp[2];
+    REAL R2 = fp[3] * fp[3];
+    realv q = RV(1) + (px * px + py * py + pz * pz) / R2;
+    realv eta = fp[4] / q;
+    realv k = RV(-2) * eta / (q * R2);
+    *gx = k * px;
+    *gy = k * py;
+    *gz = k * pz;
+    return eta;
+}
+
+#elif defined(FIELD_FIBRE)
+/* fp: cx cy n0 a.  eta^2 = n0^2 (1 - a^2 rho^2), rho measured from the axis (cx, cy, z). */
+inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
+                        realv *gz) {
+    realv px = x - fp[0], py = y - fp[1];
+    REAL n0 = fp[2], a2 = fp[3] * fp[3];
+    realv q = fmax(RV(1) - a2 * (px * px + py * py), RV(REAL_EPS));
+    realv eta = n0 * sqrt(q);
+    realv k = -n0 * n0 * a2 / eta;
+    *gx = k * px;
+    *gy = k * py;
+    *gz = RV(0);
+    return eta;
+}
+
+#elif defined(FIELD_BLOBS)
+/* fp: NBLOBS x (cx cy cz amplitude sigma).  eta = 1 + sum a exp(-|x - c|^2 / 2 s^2). */
+inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
+                        realv *gz) {
+    realv eta = RV(1), ax = RV(0), ay = RV(0), az = RV(0);
+    for (int k = 0; k < NBLOBS; ++k) {
+        __global const REAL *b = fp + 5 * k;
+        realv px = x - b[0], py = y - b[1], pz = z - b[2];
+        REAL inv = (REAL)1 / (b[4] * b[4]);
+        realv g = b[3] * exp((REAL)-0.5 * inv * (px * px + py * py + pz * pz));
+        eta += g;
+        ax -= g * inv * px;
+        ay -= g * inv * py;
+        az -= g * inv * pz;
+    }
+    *gx = ax;
+    *gy = ay;
+    *gz = az;
+    return eta;
+}
+
+#else /* smoothed solids: eta = 1 + (n - 1) S(1/2 - sd / w), sd the signed distance */
+
+#if defined(FIELD_SPHERE)
+/* fp: cx cy cz R n w */
+#define SOLID_N fp[4]
+#define SOLID_W fp[5]
+inline realv solid_sdf(FIELD_PARAMS, realv x, realv y, realv z, realv *nx, realv *ny,
+                       realv *nz) {
+    realv px = x - fp[0], py = y - fp[1], pz = z - fp[2];
+    realv r = sqrt(px * px + py * py + pz * pz);
+    realv ir = RV(1) / fmax(r, RV(REAL_EPS));
+    *nx = px * ir;
+    *ny = py * ir;
+    *nz = pz * ir;
+    return r - fp[3];
+}
+
+#elif defined(FIELD_PRISM)
+/* fp: cx cy cz, M (3x3 world->local, row-major), side, length, n, w.
+ * Equilateral triangle in local xy around the centroid, axis along local z. */
+#define SOLID_N fp[14]
+#define SOLID_W fp[15]
+inline realv solid_sdf(FIELD_PARAMS, realv x, realv y, realv z, realv *nx, realv *ny,
+                       realv *nz) {
+    realv px = x - fp[0], py = y - fp[1], pz = z - fp[2];
+    realv lx = fp[3] * px + fp[4] * py + fp[5] * pz;
+    realv ly = fp[6] * px + fp[7] * py + fp[8] * pz;
+    realv lz = fp[9] * px + fp[10] * py + fp[11] * pz;
+    REAL rin = fp[12] * (REAL)0.28867513459481287; /* side / (2 sqrt 3) */
+    REAL c30 = (REAL)0.8660254037844386;
+    /* plane normals (0,1), (-c30,-1/2), (c30,-1/2), and the caps (0,0,+-1) */
+    realv d = ly - rin, mx = RV(0), my = RV(1), mz = RV(0);
+    realv dk = -c30 * lx - (REAL)0.5 * ly - rin;
+    maskv m = dk > d;
+    d = SEL(d, dk, m); mx = SEL(mx, RV(-c30), m); my = SEL(my, RV(-0.5), m);
+    dk = c30 * lx - (REAL)0.5 * ly - rin;
+    m = dk > d;
+    d = SEL(d, dk, m); mx = SEL(mx, RV(c30), m); my = SEL(my, RV(-0.5), m);
+    dk = fabs(lz) - (REAL)0.5 * fp[13];
+    m = dk > d;
+    d = SEL(d, dk, m); mx = SEL(mx, RV(0), m); my = SEL(my, RV(0), m);
+    mz = SEL(mz, sign(lz), m);
+    /* back to world: M^T n */
+    *nx = fp[3] * mx + fp[6] * my + fp[9] * mz;
+    *ny = fp[4] * mx + fp[7] * my + fp[10] * mz;
+    *nz = fp[5] * mx + fp[8] * my + fp[11] * mz;
+    return d;
+}
+
+#elif defined(FIELD_DROP)
+/* fp: cx cy cz R H n w.  Body of revolution about z: r(t) = R sin t sin^2(t/2),
+ * z(t) = H cos t, t in [0, pi]. Distance to the profile by sampling then Newton. */
+#define SOLID_N fp[5]
+#define SOLID_W fp[6]
+#define DROP_SAMPLES 24
+#define DROP_NEWTON 5
+inline realv solid_sdf(FIELD_PARAMS, realv x, realv y, realv z, realv *nx, realv *ny,
+                       realv *nz) {
+    realv px = x - fp[0], py = y - fp[1], pz = z - fp[2];
+    REAL R = fp[3], H = fp[4];
+    realv rho = sqrt(px * px + py * py);
+    realv best_t = RV(0), best_d2 = RV(INFINITY);
+    for (int k = 0; k <= DROP_SAMPLES; ++k) {
+        REAL t = (REAL)M_PI * (REAL)k / (REAL)DROP_SAMPLES;
+        REAL ct = cos(t), st = sin(t);
+        realv dr = RV((REAL)0.5 * R * st * (1 - ct)) - rho, dz = RV(H * ct) - pz;
+        realv d2 = dr * dr + dz * dz;
+        maskv m = d2 < best_d2;
+        best_d2 = SEL(best_d2, d2, m);
+        best_t = SEL(best_t, RV(t), m);
+    }
+    realv t = best_t;
+    for (int it = 0; it < DROP_NEWTON; ++it) {
+        realv ct = cos(t), st = sin(t);
+        realv c2t = ct * ct - st * st, s2t = RV(2) * st * ct;
+        realv r = (REAL)0.5 * R * st * (RV(1) - ct), zc = H * ct;
+        realv r1 = (REAL)0.5 * R * (ct - c2t), z1 = -H * st;
+        realv r2 = (REAL)0.5 * R * (RV(2) * s2t - st), z2 = -H * ct;
+        realv g = (r - rho) * r1 + (zc - pz) * z1;
+        realv dg = r1 * r1 + z1 * z1 + (r - rho) * r2 + (zc - pz) * z2;
+        realv tn = t - g / SEL(dg, RV(1), fabs(dg) < RV(REAL_EPS));
+        t = clamp(SEL(tn, t, dg <= RV(0)), RV(0), RV(M_PI));
+    }
+    realv ct = cos(t), st = sin(t);
+    realv er = rho - (REAL)0.5 * R * st * (RV(1) - ct), ez = pz - H * ct;
+    realv dist = sqrt(er * er + ez * ez);
+    /* inside: |z| < H and rho below the profile radius at that height */
+    realv tz = acos(clamp(pz / H, RV(-1), RV(1)));
+    realv rz = (REAL)0.5 * R * sin(tz) * (RV(1) - cos(tz));
+    realv sgn = SEL(RV(1), RV(-1), fabs(pz) < RV(H) && rho < rz);
+    /* gradient: away from the curve, or the curve's outward normal when on it */
+    realv c2t = ct * ct - st * st;
+    realv onx = H * st, onz = (REAL)0.5 * R * (ct - c2t);
+    realv on = fmax(sqrt(onx * onx + onz * onz), RV(REAL_EPS));
+    maskv far = dist > RV(1e-4) * (R + H);
+    realv inv = RV(1) / fmax(dist, RV(REAL_EPS));
+    realv gr = SEL(onx / on, sgn * er * inv, far);
+    realv gz_ = SEL(onz / on, sgn * ez * inv, far);
+    realv irho = SEL(RV(0), RV(1) / fmax(rho, RV(REAL_EPS)), rho > RV(REAL_EPS));
+    *nx = gr * px * irho;
+    *ny = gr * py * irho;
+    *nz = gz_;
+    return sgn * dist;
+}
+#else
+#error "no FIELD_* kind defined"
+#endif
+
+inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
+                        realv *gz) {
+    realv nx, ny, nz;
+    realv sd = solid_sdf(FIELD_ARGS, x, y, z, &nx, &ny, &nz);
+    REAL w = SOLID_W, dn = SOLID_N - (REAL)1;
+    realv s = RV(0.5) - sd / w;
+    realv k = -dn * smoother_d(s) / w;
+    *gx = k * nx;
+    *gy = k * ny;
+    *gz = k * nz;
+    return RV(1) + dn * smoother(s);
+}
+#endif
