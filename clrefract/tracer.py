@@ -30,6 +30,8 @@ class TraceResult:
     speed: np.ndarray  # (n,) |v| at exit: equals eta there (1 on the box) up to drift
     status: np.ndarray  # (n,) Status codes
     steps: np.ndarray  # (n,) integration steps taken
+    last_position: np.ndarray  # (n, 3) last integrated point inside the box
+    last_velocity: np.ndarray  # (n, 3) v there (equal to the exit v: the margin is eta = 1)
 
 
 class Tracer:
@@ -129,9 +131,11 @@ class Tracer:
         v = [np.empty(m, self.dtype) for _ in range(3)]
         status = np.empty(m, np.int32)
         steps = np.empty(m, np.int32)
+        last = [np.empty(m, self.dtype) for _ in range(3)]
+        outs = p + v + [status, steps] + last
         scal = [(self.dtype(self.step), False), (np.int32(self.max_steps), False)]
-        args = scal + [(a, False) for a in o + d] + [(a, True) for a in p + v + [status, steps]]
-        self._run(self._k_trace, m // self.lanes, args, p + v + [status, steps])
+        args = scal + [(a, False) for a in o + d] + [(a, True) for a in outs]
+        self._run(self._k_trace, m // self.lanes, args, outs)
         vel = np.stack(v, axis=1)[:n].astype(np.float64)
         speed = np.linalg.norm(vel, axis=1)
         return TraceResult(
@@ -140,6 +144,8 @@ class Tracer:
             speed=speed,
             status=status[:n].copy(),
             steps=steps[:n].copy(),
+            last_position=np.stack(last, axis=1)[:n].astype(np.float64),
+            last_velocity=vel,
         )
 
     def propagate(self, x: np.ndarray, v: np.ndarray, n_steps: int):

@@ -90,3 +90,32 @@ inline realv box_window(realv x, realv y, realv z, realv *wx, realv *wy, realv *
     *wz = ax * ay * gaz;
     return ax * ay * az;
 }
+
+/* Float atomic add on global memory: the float-atomics extension where the build enables it
+ * (FLOAT_ATOMICS, OpenCL C 3.0), else a compare-and-swap loop (portable OpenCL 1.2). */
+#ifdef REAL_IS_DOUBLE
+#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
+inline void atomic_add_real(volatile __global REAL *p, REAL v) {
+#if defined(FLOAT_ATOMICS) && defined(__opencl_c_ext_fp64_global_atomic_add)
+    atomic_fetch_add_explicit((volatile __global atomic_double *)p, v, memory_order_relaxed);
+#else
+    union { long i; double f; } old, upd;
+    do {
+        old.f = *p;
+        upd.f = old.f + v;
+    } while (atom_cmpxchg((volatile __global long *)p, old.i, upd.i) != old.i);
+#endif
+}
+#else
+inline void atomic_add_real(volatile __global REAL *p, REAL v) {
+#if defined(FLOAT_ATOMICS) && defined(__opencl_c_ext_fp32_global_atomic_add)
+    atomic_fetch_add_explicit((volatile __global atomic_float *)p, v, memory_order_relaxed);
+#else
+    union { int i; float f; } old, upd;
+    do {
+        old.f = *p;
+        upd.f = old.f + v;
+    } while (atomic_cmpxchg((volatile __global int *)p, old.i, upd.i) != old.i);
+#endif
+}
+#endif

@@ -78,7 +78,8 @@ inline realv box_exit_t(realv x, realv y, realv z, realv dx, realv dy, realv dz)
 }
 
 /* Trace rays: straight to the box, integrate inside, straight out of the exit face.
- * Outputs the exit point, the exit v (direction times |v|), a status and the step count.
+ * Outputs the exit point, the exit v (direction times |v|), a status, the step count and
+ * the last state inside the box (where the backward pass starts).
  * A step that leaves the box is undone and replaced by a straight flight from its start:
  * exact because fields are 1 with zero gradient within MARGIN (> step) of the walls. */
 __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
@@ -87,7 +88,8 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
                          __global const REAL *dy, __global const REAL *dz, __global REAL *px,
                          __global REAL *py, __global REAL *pz, __global REAL *qx,
                          __global REAL *qy, __global REAL *qz, __global int *status,
-                         __global int *steps) {
+                         __global int *steps, __global REAL *lx, __global REAL *ly,
+                         __global REAL *lz) {
     const size_t i = get_global_id(0);
     realv x = VLOAD(i, ox), y = VLOAD(i, oy), z = VLOAD(i, oz);
     realv ux = VLOAD(i, dx), uy = VLOAD(i, dy), uz = VLOAD(i, dz);
@@ -130,6 +132,7 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
     realv speed = sqrt(vx * vx + vy * vy + vz * vz);
     realv iv = RV(1) / speed;
     realv ex = vx * iv, ey = vy * iv, ez = vz * iv;
+    VSTORE(x, i, lx); VSTORE(y, i, ly); VSTORE(z, i, lz);
     maskv out = st == RV(ST_EXITED);
     realv te = SEL(RV(0), box_exit_t(x, y, z, ex, ey, ez), out);
     x += te * ex; y += te * ey; z += te * ez;

@@ -1,0 +1,67 @@
+"""Photometric loss on exit directions and its gradient, the start of the backward pass.
+
+The loss compares environment radiance in each ray's exit direction with the photographed
+pixel. Its gradient with respect to the exit velocity v is the terminal adjoint
+mu(T) = (I - d d^T) / |v| dJ/dd (SPEC section 3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .envmap import EnvMap
+
+
+def envmap_lookup_jacobian(env: EnvMap, directions: np.ndarray):
+    """Radiance (n, 3) and its derivative with respect to the unit direction (n, 3, 3):
+    jac[i, c, k] = d radiance_c / d d_k, for the bilinear lookup of SPEC section 6."""
+    d = np.asarray(directions, np.float64)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    h, w = env.height, env.width
+    rxy2 = np.maximum(d[:, 0] ** 2 + d[:, 1] ** 2, 1e-30)
+    u = 0.5 + np.arctan2(d[:, 1], d[:, 0]) / (2 * np.pi)
+    dz = np.clip(d[:, 2], -1.0, 1.0)
+    v = np.arccos(dz) / np.pi
+    row, col = v * h - 0.5, u * w - 0.5
+    r0, c0 = np.floor(row), np.floor(col)
+    fr, fc = (row - r0)[:, None], (col - c0)[:, None]
+    r0i = r0.astype(np.int64)
+    r1 = np.clip(r0i + 1, 0, h - 1)
+    r0i = np.clip(r0i, 0, h - 1)
+    c0i = np.mod(c0.astype(np.int64), w)
+    c1 = np.mod(c0i + 1, w)
+    img = env.image.astype(np.float64)
+    a, b, c, e = img[r0i, c0i], img[r0i, c1], img[r1, c0i], img[r1, c1]
+    top, bot = a * (1 - fc) + b * fc, c * (1 - fc) + e * fc
+    rad = top * (1 - fr) + bot * fr
+    d_col = (b - a) * (1 - fr) + (e - c) * fr  # d rad / d col
+    d_row = np.where(((row >= 0) & (row <= h - 1))[:, None], bot - top, 0.0)  # clamped in v
+    # col = u w - 1/2, u = 1/2 + atan2(y, x) / 2 pi;  row = v h - 1/2, v = acos(z) / pi
+    dcol_dd = np.column_stack([-d[:, 1], d[:, 0], np.zeros(len(d))]) * (w / (2 * np.pi))
+    dcol_dd /= rxy2[:, None]
+    drow_dz = -h / (np.pi * np.sqrt(np.maximum(1 - dz * dz, 1e-30)))
+    drow_dd = np.zeros_like(d)
+    drow_dd[:, 2] = drow_dz
+    jac = d_col[:, :, None] * dcol_dd[:, None, :] + d_row[:, :, None] * drow_dd[:, None, :]
+    return rad, jac
+
+
+def photometric_loss(env: EnvMap, velocity: np.ndarray, target: np.ndarray,
+                     weight: np.ndarray | None = None):
+    """Mean squared error over rays and channels, and the terminal adjoint dJ/dv (n, 3).
+
+    velocity: exit v (n, 3), not necessarily unit; target: (n, 3) linear radiance;
+    weight: (n,) 0/1 mask of rays that count (rays that did not exit get 0).
+    """
+    v = np.asarray(velocity, np.float64)
+    speed = np.linalg.norm(v, axis=1)
+    d = v / speed[:, None]
+    rad, jac = envmap_lookup_jacobian(env, d)
+    wgt = np.ones(len(v)) if weight is None else np.asarray(weight, np.float64)
+    resid = (rad - target) * wgt[:, None]
+    n = max(resid.size, 1)
+    loss = float((resid**2).sum() / n)
+    dj_dd = np.einsum("nc,nck->nk", 2 * resid / n, jac)
+    # remove the radial part: dJ/dv = (I - d d^T) / |v| dJ/dd
+    dj_dv = (dj_dd - (dj_dd * d).sum(1, keepdims=True) * d) / speed[:, None]
+    return loss, dj_dv, rad

@@ -1,0 +1,37 @@
+"""Images from a tracer: camera rays, curved flight through the box, environment radiance."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .cameras import Camera
+from .envmap import EnvMap
+from .tracer import Status, Tracer
+
+
+@dataclass
+class RenderResult:
+    image: np.ndarray  # (H, W, 3) linear radiance
+    status_counts: dict  # Status name -> number of pixels
+    steps: int  # integration steps taken over all pixels
+
+
+def render_camera(tracer: Tracer, camera: Camera, envmap: EnvMap,
+                  chunk: int = 1 << 18) -> RenderResult:
+    """One ray through each pixel centre; trapped or non-finite rays render black."""
+    origins, dirs = camera.rays()
+    out = np.empty((len(origins), 3), np.float32)
+    status = np.empty(len(origins), np.int32)
+    steps = 0
+    for s in range(0, len(origins), chunk):
+        res = tracer.trace(origins[s : s + chunk], dirs[s : s + chunk])
+        rad = envmap.lookup(res.direction)
+        bad = (res.status == Status.TRAPPED) | (res.status == Status.NONFINITE)
+        rad[bad] = 0.0
+        out[s : s + chunk] = rad
+        status[s : s + chunk] = res.status
+        steps += int(res.steps.sum())
+    counts = {st.name.lower(): int((status == st).sum()) for st in Status}
+    return RenderResult(out.reshape(camera.height, camera.width, 3), counts, steps)

@@ -1,0 +1,166 @@
+"""Forward tracing benchmark: throughput per field kind beside Dr.Jit, and the speed/accuracy
+trade of the integrators on the Luneburg lens.
+
+    python tools/bench_trace.py [--rays 262144] [--json bench_results/trace.json]
+
+Prints two tables and writes them as JSON. Absolute times on a shared machine are noise;
+compare the rows of one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from clrefract.fields.analytic import Blobs, Drop, Luneburg, Prism, Sphere  # noqa: E402
+from clrefract.fields.base import Box  # noqa: E402
+from clrefract.runtime import default_runtime  # noqa: E402
+from clrefract.tracer import Tracer  # noqa: E402
+
+BOX = Box()
+
+
+def workload(n: int, seed: int = 0):
+    """Rays from a plane below the box, aimed through it with a small spread."""
+    rng = np.random.default_rng(seed)
+    o = np.column_stack([rng.uniform(-45, 45, (n, 2)), np.full(n, -120.0)])
+    d = np.column_stack([rng.normal(0, 0.05, (n, 2)), np.ones(n)])
+    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def best_of(fn, repeats: int):
+    best, out = np.inf, None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def bench_fields(n: int, step: float, repeats: int) -> list[dict]:
+    o, d = workload(n)
+    blobs = Blobs.random(4, amplitude=0.1, seed=3)
+    fields = [("blobs", blobs), ("luneburg", Luneburg(radius=20.0)), ("sphere", Sphere()),
+              ("prism", Prism()), ("drop", Drop())]
+    try:
+        from clrefract.fields.voxel import VoxelGrid
+
+        for interp in ("trilinear", "smoothstep"):
+            fields.append((f"voxel-128-{interp}",
+                           VoxelGrid.from_field(Sphere(width=4.0), BOX, 128, interp)))
+    except ImportError:
+        pass
+    try:
+        from clrefract.fields.hashgrid import HashGridConfig, HashGridField
+
+        fields.append(("hashgrid-16x2-64x2", HashGridField(HashGridConfig(), BOX, seed=0)))
+    except ImportError:
+        pass
+    rows = []
+    dev = default_runtime().info.kind
+    lane_choices = sorted({1, default_runtime().default_lanes("float32")})
+    for name, f in fields:
+        for lanes in lane_choices:
+            # expensive fields get fewer rays so every row takes similar time
+            m = n if not name.startswith("hash") else max(n // 32, 4096)
+            tr = Tracer(f, BOX, step=step, lanes=lanes)
+            tr.trace(o[:256], d[:256])
+            sec, res = best_of(lambda: tr.trace(o[:m], d[:m]), repeats)  # noqa: B023
+            steps = int(res.steps.sum())
+            rows.append({"engine": f"clrefract ({dev}, {lanes} lanes)", "field": name,
+                         "rays": m, "steps": steps, "seconds": sec,
+                         "steps_per_s": steps / sec})
+    try:
+        from drjit_peer import drjit_trace_blobs
+    except ImportError as exc:
+        print(f"(Dr.Jit peer unavailable: {exc})", file=sys.stderr)
+        return rows
+    args = (o, d, np.asarray(blobs.centers), np.asarray(blobs.amplitudes),
+            np.asarray(blobs.sigmas), BOX.lo, BOX.hi, step, 4 * 174 * int(1 / step + 1))
+    drjit_trace_blobs(*args)  # JIT warm-up
+    sec, res = best_of(lambda: drjit_trace_blobs(*args), repeats)
+    steps = int(np.sum(res["steps"]))
+    ref = Tracer(blobs, BOX, step=step, precision="float64", lanes=8).trace(o, d)
+    err = float(np.abs(res["direction"] - ref.direction).max())
+    rows.append({"engine": "Dr.Jit LLVM (peer)", "field": "blobs", "rays": n, "steps": steps,
+                 "seconds": sec, "steps_per_s": steps / sec, "max_dir_diff_vs_f64": err})
+    return rows
+
+
+def luneburg_rays(n: int, radius: float, seed: int = 1):
+    rng = np.random.default_rng(seed)
+    yz = rng.uniform(-1, 1, (4 * n, 2))
+    yz = radius * yz[(yz**2).sum(1) < 0.9][:n]
+    o = np.column_stack([np.full(len(yz), -120.0), yz])
+    d = np.tile([1.0, 0.0, 0.0], (len(yz), 1))
+    # exact exit direction: -P / R with P the entry point on the lens
+    p = np.column_stack([-np.sqrt(radius**2 - (yz**2).sum(1)), yz])
+    return o, d, -p / radius
+
+
+def bench_tradeoff(n: int, repeats: int) -> list[dict]:
+    radius = 20.0
+    o, d, exact = luneburg_rays(n, radius)
+    rows = []
+    for precision in ("float32", "float64"):
+        for integrator in ("rkn4", "rk4", "euler"):
+            for step in (2.0, 1.0, 0.5, 0.25, 0.125, 0.0625):
+                tr = Tracer(Luneburg(radius=radius), BOX, step=step, integrator=integrator,
+                            precision=precision)
+                tr.trace(o[:64], d[:64])
+                sec, res = best_of(lambda: tr.trace(o, d), repeats)  # noqa: B023
+                cosang = np.clip((res.direction * exact).sum(1), -1, 1)
+                err = np.degrees(np.arccos(cosang))
+                rows.append({"precision": precision, "integrator": integrator, "step": step,
+                             "max_err_deg": float(err.max()), "mean_err_deg": float(err.mean()),
+                             "seconds": sec, "rays_per_s": len(o) / sec})
+    return rows
+
+
+def print_table(rows: list[dict], cols: list[str]) -> None:
+    widths = {c: max(len(c), *(len(_cell(r.get(c))) for r in rows)) for c in cols}
+    print("  ".join(c.ljust(widths[c]) for c in cols))
+    for r in rows:
+        print("  ".join(_cell(r.get(c)).ljust(widths[c]) for c in cols))
+
+
+def _cell(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return "" if v is None else str(v)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rays", type=int, default=1 << 18)
+    ap.add_argument("--step", type=float, default=0.5)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--tradeoff-rays", type=int, default=20000)
+    ap.add_argument("--json", default="bench_results/trace.json")
+    args = ap.parse_args()
+    info = default_runtime().info
+    print(f"device: {info.platform} / {info.name}\n")
+    fields = bench_fields(args.rays, args.step, args.repeats)
+    print(f"Throughput, step {args.step} mm, RKN4 float32 (ray-steps per second):")
+    print_table(fields, ["engine", "field", "rays", "steps", "seconds", "steps_per_s",
+                         "max_dir_diff_vs_f64"])
+    trade = bench_tradeoff(args.tradeoff_rays, args.repeats)
+    print("\nSpeed/accuracy on the Luneburg lens (exit direction vs closed form):")
+    print_table(trade, ["precision", "integrator", "step", "max_err_deg", "mean_err_deg",
+                        "seconds", "rays_per_s"])
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"device": info.name, "throughput": fields, "tradeoff": trade},
+                              indent=2))
+    print(f"\nwrote {out}")
+
+
+if __name__ == "__main__":
+    main()

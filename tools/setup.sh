@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# Set up clrefract on a fresh machine: an OpenCL CPU driver and a virtual environment in .venv.
+# Idempotent; safe to run before every command.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+have_icd() { ls /etc/OpenCL/vendors/*.icd >/dev/null 2>&1; }
+
+# Debian's PoCL is faster than the pip wheel (SPEC section 7); use it where apt works.
+if ! have_icd && command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
+  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+      pocl-opencl-icd ocl-icd-libopencl1 >/dev/null) || echo "setup: apt failed, using pip PoCL"
+fi
+
+if [ ! -x .venv/bin/python ]; then
+  python3 -m venv .venv
+fi
+extras="test"
+have_icd || extras="test,pocl"
+stamp=".venv/.clrefract-installed-$extras-$(sha1sum pyproject.toml | cut -c1-12)"
+if [ ! -f "$stamp" ]; then
+  .venv/bin/python -m pip install -q --upgrade pip
+  .venv/bin/python -m pip install -q -e ".[$extras]"
+  touch "$stamp"
+fi
