@@ -1,4 +1,6 @@
-"""Command line: `clrefract devices`, `clrefract render`."""
+"""clrefract: recover index-of-refraction fields from photographs through curved rays.
+
+Commands: devices, render, dataset make, dataset check, fit."""
 
 from __future__ import annotations
 
@@ -16,8 +18,9 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--device", default=None,
                    help="OpenCL device: 'P:D' index, a name substring (default: PYOPENCL_CTX, "
                         "else the first GPU, else a CPU)")
-    g.add_argument("--step", type=float, default=0.5,
-                   help="integrator step in mm of optical path (default 0.5)")
+    g.add_argument("--step", type=float, default=None,
+                   help="integrator step in mm of optical path (default: what the field needs, "
+                        "at most 0.5)")
     g.add_argument("--integrator", default="rkn4", choices=["rkn4", "rk4", "euler"])
     g.add_argument("--precision", default="float32", choices=["float32", "float64"])
     g.add_argument("--lanes", type=int, default=None,
@@ -52,9 +55,18 @@ def _cmd_render(args) -> int:
     from .tracer import Tracer
 
     box = Box()
-    field = field_from_spec(args.field, box)
+    dataset = None
+    if args.dataset:
+        from .dataset import Dataset
+
+        dataset = Dataset(Path(args.dataset))
+        box = dataset.box
+    field = _field_for_render(args.field, box)
     if args.cameras:
         cameras = load_transforms(Path(args.cameras))
+    elif dataset is not None:
+        cameras = {"train": dataset.train, "test": dataset.test,
+                   "all": dataset.train + dataset.test}[args.split]
     else:
         cameras = fibonacci_sphere_cameras(args.views, radius=args.radius, width=args.res,
                                            height=args.res)
@@ -63,9 +75,14 @@ def _cmd_render(args) -> int:
         if bad:
             raise ClrefractError(f"--only: view(s) {bad} out of range 0..{len(cameras) - 1}")
         cameras = [cameras[i] for i in args.only]
-    envmap = EnvMap.from_exr(Path(args.envmap)) if args.envmap else EnvMap.procedural(
-        seed=args.seed)
+    if args.envmap:
+        envmap = EnvMap.from_exr(Path(args.envmap))
+    elif dataset is not None:
+        envmap = dataset.envmap()
+    else:
+        envmap = EnvMap.procedural(seed=args.seed)
     runtime = Runtime(args.device)
+    args.step = field.suggested_step if args.step is None else args.step
     tracer = Tracer(field, box, step=args.step, integrator=args.integrator,
                     precision=args.precision, lanes=args.lanes, max_steps=args.max_steps,
                     runtime=runtime)
@@ -80,7 +97,7 @@ def _cmd_render(args) -> int:
         t0 = time.perf_counter()
         res = render_camera(tracer, cam, envmap)
         dt = time.perf_counter() - t0
-        stem = Path(cam.file_path).stem if getattr(cam, "file_path", None) else f"view_{k:03d}"
+        stem = Path(cam.file_path).name if cam.file_path else f"view_{k:03d}"
         write_exr_rgb(out / f"{stem}.exr", res.image)
         write_png_srgb(out / f"{stem}.png", res.image)
         summary.append({"view": stem, "seconds": dt, "steps": res.steps, **res.status_counts})
@@ -97,6 +114,60 @@ def _cmd_render(args) -> int:
     return 0
 
 
+def _field_for_render(spec: str, box):
+    """A field spec, or a fit run folder (its field.npz, else its latest checkpoint)."""
+    from .fields import field_from_spec
+
+    p = Path(spec)
+    if p.is_dir():
+        if (p / "field.npz").is_file():
+            return field_from_spec(str(p / "field.npz"), box)
+        if (p / "checkpoint.npz").is_file():
+            from .fit import field_from_run
+
+            return field_from_run(p)
+        from .errors import ClrefractError
+
+        raise ClrefractError(f"{p}: a folder, but not a fit run (no field.npz or checkpoint.npz)")
+    return field_from_spec(spec, box)
+
+
+def _cmd_dataset_make(args) -> int:
+    from .synth import MakeOptions, make_dataset
+
+    opt = MakeOptions(views=args.views, res=args.res, test_every=args.test_every,
+                      seed=args.seed, envmap=args.envmap, env_width=args.env_width,
+                      device=args.device)
+    if args.full:
+        opt.views, opt.res = 100, 800
+    info = make_dataset(args.scene, Path(args.out), opt)
+    print(json.dumps(info, indent=2))
+    return 0
+
+
+def _cmd_dataset_check(args) -> int:
+    from .dataset import check_dataset
+
+    problems = check_dataset(Path(args.dir))
+    for p in problems:
+        print(p)
+    print(f"{args.dir}: {'OK' if not problems else f'{len(problems)} problem(s)'}")
+    return 1 if problems else 0
+
+
+def _cmd_fit(args) -> int:
+    from .fit import load_config, run_fit
+
+    overrides = {k: getattr(args, k) for k in (
+        "field", "res", "iterations", "batch", "lr", "lr_table", "lr_mlp", "reg", "step",
+        "queues", "device", "seed", "precision", "levels", "log2_table", "hidden",
+        "test_views")}
+    cfg = load_config(Path(args.config) if args.config else None, overrides)
+    result = run_fit(Path(args.dataset), Path(args.out), cfg, resume=args.resume)
+    print(json.dumps({k: v for k, v in result.items() if k != "views"}, indent=2))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="clrefract", description=__doc__)
     sub = ap.add_subparsers(dest="command", required=True)
@@ -107,7 +178,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="render a field through curved rays")
     p.add_argument("--field", default="sphere",
                    help="analytic spec 'kind:key=value,...' (kinds: luneburg, maxwell, fibre, "
-                        "blobs, sphere, prism, drop), or a voxel/hash-grid .npz, or a .json")
+                        "blobs, sphere, prism, drop), a voxel/hash-grid .npz, a .json, or a "
+                        "fit run folder")
+    p.add_argument("--dataset", help="take cameras and environment map from a dataset folder")
+    p.add_argument("--split", default="test", choices=["train", "test", "all"],
+                   help="with --dataset: which views (default test)")
     p.add_argument("--cameras", help="NeRF-convention transforms JSON")
     p.add_argument("--views", type=int, default=8,
                    help="without --cameras: this many views on a Fibonacci sphere")
@@ -119,6 +194,49 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="renders", help="output folder")
     _add_engine_options(p)
     p.set_defaults(func=_cmd_render)
+
+    ds = sub.add_parser("dataset", help="make or check datasets").add_subparsers(
+        dest="dataset_command", required=True)
+    p = ds.add_parser("make", help="generate a synthetic benchmark scene")
+    p.add_argument("scene", help="sphere, prism, drop (exact Snell ground truth), "
+                                 "luneburg or plume (graded index)")
+    p.add_argument("--out", required=True, help="dataset folder to write")
+    p.add_argument("--views", type=int, default=100)
+    p.add_argument("--res", type=int, default=128, help="image width and height")
+    p.add_argument("--full", action="store_true", help="the full protocol: 100 views, 800x800")
+    p.add_argument("--test-every", type=int, default=5, help="every k-th view is a test view")
+    p.add_argument("--seed", type=int, default=0, help="seed of the procedural environment")
+    p.add_argument("--envmap", help="your own equirectangular EXR instead")
+    p.add_argument("--env-width", type=int, default=2048, help="procedural map width")
+    p.add_argument("--device", default=None)
+    p.set_defaults(func=_cmd_dataset_make)
+    p = ds.add_parser("check", help="validate a dataset folder and name every problem")
+    p.add_argument("dir")
+    p.set_defaults(func=_cmd_dataset_check)
+
+    p = sub.add_parser("fit", help="recover eta from a dataset")
+    p.add_argument("dataset", help="dataset folder (see `clrefract dataset make`)")
+    p.add_argument("--out", required=True, help="run folder")
+    p.add_argument("--config", help="TOML file of fit settings (flags override it)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    p.add_argument("--field", choices=["voxel", "hashgrid"])
+    p.add_argument("--res", type=int, help="voxel grid resolution")
+    p.add_argument("--levels", type=int, help="hash grid levels")
+    p.add_argument("--log2-table", type=int, help="hash table size, log2")
+    p.add_argument("--hidden", type=int, help="MLP width")
+    p.add_argument("--iterations", type=int)
+    p.add_argument("--batch", type=int, help="rays per iteration")
+    p.add_argument("--lr", type=float, help="learning rate of voxel values")
+    p.add_argument("--lr-table", type=float, help="learning rate of hash tables")
+    p.add_argument("--lr-mlp", type=float, help="learning rate of the MLP")
+    p.add_argument("--reg", type=float, help="smoothness regulariser weight")
+    p.add_argument("--step", type=float, help="integrator step, mm")
+    p.add_argument("--queues", type=int, help="command queues the batch is split across")
+    p.add_argument("--precision", choices=["float32", "float64"])
+    p.add_argument("--device")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--test-views", type=int, help="test views rendered at the end (-1 all)")
+    p.set_defaults(func=_cmd_fit)
     return ap
 
 

@@ -46,19 +46,38 @@ def envmap_lookup_jacobian(env: EnvMap, directions: np.ndarray):
     return rad, jac
 
 
+def srgb(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """sRGB encoding of linear values clipped to [0, 1], and its derivative (float64)."""
+    c = np.clip(x, 0.0, 1.0)
+    lo = c <= 0.0031308
+    cs = np.maximum(c, 0.0031308)
+    y = np.where(lo, 12.92 * c, 1.055 * cs ** (1 / 2.4) - 0.055)
+    dy = np.where(lo, 12.92, 1.055 / 2.4 * cs ** (1 / 2.4 - 1))
+    return y, np.where((x < 0) | (x > 1), 0.0, dy)
+
+
 def photometric_loss(env: EnvMap, velocity: np.ndarray, target: np.ndarray,
-                     weight: np.ndarray | None = None):
+                     weight: np.ndarray | None = None, space: str = "srgb"):
     """Mean squared error over rays and channels, and the terminal adjoint dJ/dv (n, 3).
 
     velocity: exit v (n, 3), not necessarily unit; target: (n, 3) linear radiance;
-    weight: (n,) 0/1 mask of rays that count (rays that did not exit get 0).
+    weight: (n,) 0/1 mask of rays that count (rays that did not exit get 0);
+    space: "srgb" compares sRGB-encoded values clipped to [0, 1], as the test metrics do
+    (bright lamps then do not dominate), "linear" compares radiance.
     """
     v = np.asarray(velocity, np.float64)
     speed = np.linalg.norm(v, axis=1)
     d = v / speed[:, None]
     rad, jac = envmap_lookup_jacobian(env, d)
     wgt = np.ones(len(v)) if weight is None else np.asarray(weight, np.float64)
-    resid = (rad - target) * wgt[:, None]
+    if space == "srgb":
+        enc, denc = srgb(rad)
+        resid = (enc - srgb(np.asarray(target, np.float64))[0]) * wgt[:, None]
+        jac = denc[:, :, None] * jac
+    elif space == "linear":
+        resid = (rad - target) * wgt[:, None]
+    else:
+        raise ValueError(f"loss space must be 'srgb' or 'linear', got {space!r}")
     n = max(resid.size, 1)
     loss = float((resid**2).sum() / n)
     dj_dd = np.einsum("nc,nck->nk", 2 * resid / n, jac)

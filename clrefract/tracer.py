@@ -13,7 +13,20 @@ from .fields.base import Box, Field
 from .runtime import Runtime, default_runtime
 
 INTEGRATORS = ("rkn4", "rk4", "euler")
-SOURCES = ["common.h", None, "trace.cl"]
+
+
+@dataclass
+class Out:
+    """A kernel argument written by the device and copied back."""
+
+    array: np.ndarray
+
+
+@dataclass
+class InOut:
+    """A kernel argument copied to the device, updated there, and copied back."""
+
+    array: np.ndarray
 
 
 class Status(IntEnum):
@@ -39,6 +52,7 @@ class Tracer:
 
     step: the increment of sigma (arc length / eta) per integrator step, in mm.
     lanes: rays per work-item; None picks the device's default (16 on CPUs, 1 on GPUs).
+    adjoint: also build the backward-pass kernel (fields with parameters only).
     """
 
     def __init__(
@@ -51,6 +65,7 @@ class Tracer:
         lanes: int | None = None,
         max_steps: int | None = None,
         runtime: Runtime | None = None,
+        adjoint: bool = False,
     ):
         if not (isinstance(step, int | float) and math.isfinite(step) and step > 0):
             raise ClrefractError(f"step must be a positive number of mm, got {step!r}")
@@ -71,8 +86,13 @@ class Tracer:
         self.dtype = self.runtime.real_dtype(precision)
         defines = {**field.defines(), **self.box.defines(), "LANES": self.lanes}
         defines[f"INTEGRATOR_{integrator.upper()}"] = 1
-        sources = [s if s is not None else field.source for s in SOURCES]
-        prg = self.runtime.build(sources, defines, precision)
+        sources = ["common.h", field.source, "trace.cl"]
+        if adjoint:
+            adj = getattr(field, "adjoint_source", None)
+            if adj is None:
+                raise ClrefractError(f"field {field.kind!r} has no parameters to fit")
+            sources = ["common.h", field.source, adj, "trace.cl", "adjoint.cl"]
+        self.kernels = prg = self.runtime.build(sources, defines, precision)
         self._k_trace = prg.trace_rays
         self._k_propagate = prg.propagate_rays
         self._k_eval = prg.eval_field
@@ -103,21 +123,32 @@ class Tracer:
             a = np.concatenate([a, np.repeat(a[-1:], pad, axis=0)])
         return [self._real(a[:, k]) for k in range(3)], n
 
-    def _run(self, kernel, n_items: int, args, outputs):
+    def _enqueue(self, kernel, n_items: int, args, queue=None):
+        """Launch with numpy inputs copied in, Out/InOut arrays copied back (non-blocking);
+        returns the queue, to be finished by the caller."""
         cl = self.runtime.cl
-        q = self.runtime.queue
-        mf = cl.mem_flags
-        bufs = []
-        for a, is_out in args:
-            if isinstance(a, np.ndarray):
-                flags = (mf.READ_WRITE if is_out else mf.READ_ONLY) | mf.COPY_HOST_PTR
-                bufs.append(cl.Buffer(self.runtime.context, flags, hostbuf=a))
+        q = queue or self.runtime.queue
+        mf, ctx = cl.mem_flags, self.runtime.context
+        bufs, back = [], []
+        for a in args:
+            if isinstance(a, Out):
+                b = cl.Buffer(ctx, mf.WRITE_ONLY, max(a.array.nbytes, 1))
+                back.append((a.array, b))
+            elif isinstance(a, InOut):
+                b = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=a.array)
+                back.append((a.array, b))
+            elif isinstance(a, np.ndarray):
+                b = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
             else:
-                bufs.append(a)
+                b = a
+            bufs.append(b)
         kernel(q, (n_items,), None, self._fp, self._fd, *bufs)
-        for a, b in zip(outputs, [b for (a_, o), b in zip(args, bufs) if o]):
-            cl.enqueue_copy(q, a, b)
-        q.finish()
+        for a, b in back:
+            cl.enqueue_copy(q, a, b, is_blocking=False)
+        return q
+
+    def _run(self, kernel, n_items: int, args, queue=None) -> None:
+        self._enqueue(kernel, n_items, args, queue).finish()
 
     def trace(self, origins: np.ndarray, directions: np.ndarray) -> TraceResult:
         o, n = self._padded_columns(origins, "ray origins")
@@ -132,10 +163,9 @@ class Tracer:
         status = np.empty(m, np.int32)
         steps = np.empty(m, np.int32)
         last = [np.empty(m, self.dtype) for _ in range(3)]
-        outs = p + v + [status, steps] + last
-        scal = [(self.dtype(self.step), False), (np.int32(self.max_steps), False)]
-        args = scal + [(a, False) for a in o + d] + [(a, True) for a in outs]
-        self._run(self._k_trace, m // self.lanes, args, outs)
+        outs = [Out(a) for a in p + v + [status, steps] + last]
+        scal = [self.dtype(self.step), np.int32(self.max_steps)]
+        self._run(self._k_trace, m // self.lanes, scal + o + d + outs)
         vel = np.stack(v, axis=1)[:n].astype(np.float64)
         speed = np.linalg.norm(vel, axis=1)
         return TraceResult(
@@ -152,9 +182,8 @@ class Tracer:
         """Advance states (x, v) by n_steps integrator steps, ignoring the box."""
         xs, n = self._padded_columns(x, "positions")
         vs, _ = self._padded_columns(v, "velocities")
-        args = [(self.dtype(self.step), False), (np.int32(n_steps), False)]
-        args += [(a, True) for a in xs + vs]
-        self._run(self._k_propagate, len(xs[0]) // self.lanes, args, xs + vs)
+        args = [self.dtype(self.step), np.int32(n_steps)] + [InOut(a) for a in xs + vs]
+        self._run(self._k_propagate, len(xs[0]) // self.lanes, args)
         return (
             np.stack(xs, axis=1)[:n].astype(np.float64),
             np.stack(vs, axis=1)[:n].astype(np.float64),
@@ -165,5 +194,5 @@ class Tracer:
         xs, n = self._padded_columns(pts, "points")
         m = len(xs[0])
         outs = [np.empty(m, self.dtype) for _ in range(4)]
-        self._run(self._k_eval, m // self.lanes, [(a, False) for a in xs] + [(a, True) for a in outs], outs)
+        self._run(self._k_eval, m // self.lanes, xs + [Out(a) for a in outs])
         return outs[0][:n].astype(np.float64), np.stack(outs[1:], axis=1)[:n].astype(np.float64)

@@ -53,11 +53,7 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
     realv vx = VLOAD(i, qxk), vy = VLOAD(i, qyk), vz = VLOAD(i, qzk);
     realv mx = VLOAD(i, mux), my = VLOAD(i, muy), mz = VLOAD(i, muz);
     realv lx = RV(0), ly = RV(0), lz = RV(0);
-#if LANES == 1
-    realv n = (REAL)steps[i];
-#else
-    realv n = CAT(convert_, realv)(CAT(vload, LANES)(i, steps));
-#endif
+    realv n = TO_REALV(VLOAD(i, steps));
     FIELD_ACC_DECL
     const REAL hh = (REAL)0.5 * h, h6 = h / (REAL)6;
     for (int k = 0; ANY(RV(k) < n); ++k) {

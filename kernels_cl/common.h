@@ -28,6 +28,7 @@ typedef REAL realv;
 #define ANY(m) (m)
 #define SEL(a, b, m) ((m) ? (b) : (a))
 #define TO_INTV(v) ((int)(v))
+#define TO_REALV(v) ((REAL)(v))
 #define VSTORE_INT(v, i, p) ((p)[(i)] = (v))
 typedef int intv;
 typedef int maskv;
@@ -44,6 +45,7 @@ typedef CAT(int, LANES) maskv;
 #define ANY(m) any(m)
 #define SEL(a, b, m) select((a), (b), (m))
 #define TO_INTV(v) CAT(convert_int, LANES)(v)
+#define TO_REALV(v) CAT(convert_, CAT(REAL, LANES))(v)
 #define VSTORE_INT(v, i, p) CAT(vstore, LANES)((v), (i), (p))
 #endif
 
@@ -119,3 +121,35 @@ inline void atomic_add_real(volatile __global REAL *p, REAL v) {
 #endif
 }
 #endif
+
+/* Scalar box window with gradient and Hessian (xx yy zz xy xz yz), for the backward pass. */
+inline REAL smoother_dd1(REAL t) {
+    return (t > (REAL)0 && t < (REAL)1) ? (REAL)60 * t * (1 - t) * (1 - 2 * t) : (REAL)0;
+}
+inline REAL smoother1(REAL t) {
+    t = clamp(t, (REAL)0, (REAL)1);
+    return t * t * t * (t * (t * 6 - 15) + 10);
+}
+inline REAL smoother_d1(REAL t) {
+    return (t > (REAL)0 && t < (REAL)1) ? (REAL)30 * t * t * (t * (t - 2) + 1) : (REAL)0;
+}
+/* one axis: a(x) = s(d0) s(d1), d0 = (x - lo)/m - 1, d1 = (hi - x)/m - 1 */
+inline REAL window_axis(REAL x, REAL lo, REAL hi, REAL *da, REAL *dda) {
+    const REAL m = (REAL)MARGIN;
+    REAL d0 = (x - lo) / m - 1, d1 = (hi - x) / m - 1;
+    REAL s0 = smoother1(d0), s1 = smoother1(d1);
+    REAL p0 = smoother_d1(d0), p1 = smoother_d1(d1);
+    *da = (p0 * s1 - s0 * p1) / m;
+    *dda = (smoother_dd1(d0) * s1 - 2 * p0 * p1 + s0 * smoother_dd1(d1)) / (m * m);
+    return s0 * s1;
+}
+inline REAL window_hess(REAL x, REAL y, REAL z, REAL *g, REAL *H) {
+    REAL dax, ddax, day, dday, daz, ddaz;
+    REAL ax = window_axis(x, (REAL)BOX_LO_X, (REAL)BOX_HI_X, &dax, &ddax);
+    REAL ay = window_axis(y, (REAL)BOX_LO_Y, (REAL)BOX_HI_Y, &day, &dday);
+    REAL az = window_axis(z, (REAL)BOX_LO_Z, (REAL)BOX_HI_Z, &daz, &ddaz);
+    g[0] = dax * ay * az; g[1] = ax * day * az; g[2] = ax * ay * daz;
+    H[0] = ddax * ay * az; H[1] = ax * dday * az; H[2] = ax * ay * ddaz;
+    H[3] = dax * day * az; H[4] = dax * ay * daz; H[5] = ax * day * daz;
+    return ax * ay * az;
+}

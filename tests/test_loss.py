@@ -1,6 +1,7 @@
 """The photometric loss gradient against central finite differences."""
 
 import numpy as np
+import pytest
 
 from clrefract.envmap import EnvMap
 from clrefract.loss import envmap_lookup_jacobian, photometric_loss
@@ -30,15 +31,17 @@ def test_lookup_matches_envmap_and_jacobian_matches_fd():
         assert ok.mean() > 0.97  # a few samples straddle texel edges (bilinear kinks)
 
 
-def test_loss_gradient_matches_fd_along_random_directions():
+@pytest.mark.parametrize("space", ["srgb", "linear"])
+def test_loss_gradient_matches_fd_along_random_directions(space):
     env = _env()
     rng = np.random.default_rng(1)
     v = rng.normal(size=(200, 3)) * 1.3
     target = env.lookup(rng.normal(size=(200, 3))).astype(np.float64)
-    loss, g, _ = photometric_loss(env, v, target)
+    loss, g, _ = photometric_loss(env, v, target, space=space)
     hits = 0
     for _ in range(10):
         u = rng.normal(size=v.shape) * 1e-7
-        fd = (photometric_loss(env, v + u, target)[0] - photometric_loss(env, v - u, target)[0])
+        fd = (photometric_loss(env, v + u, target, space=space)[0]
+              - photometric_loss(env, v - u, target, space=space)[0])
         hits += abs(fd / 2 - (g * u).sum()) < 1e-3 * abs((g * u).sum()) + 1e-15
     assert hits >= 9

@@ -171,6 +171,10 @@ class SmoothSolid(AnalyticField):
     def eta_max(self):
         return float(self.eta)
 
+    @property
+    def suggested_step(self) -> float:
+        return min(0.5, self.width / 4)
+
     def sdf(self, pts):
         """Signed distance (n,) and its gradient (n, 3)."""
         raise NotImplementedError

@@ -98,3 +98,9 @@ class Field:
 
     def uses_window(self) -> bool:
         return False
+
+    @property
+    def suggested_step(self) -> float:
+        """A step (mm) that resolves the field's finest feature; steps much larger than a
+        sharp interface trap grazing rays in spurious orbits."""
+        return 0.5

@@ -1,0 +1,171 @@
+"""Datasets on disk (SPEC section 6): NeRF-convention transforms, linear EXR views, the
+environment map and a scene file; read, written and checked here.
+
+    DIR/scene.json              box, units, eta range, object, file names
+    DIR/transforms_train.json   cameras (camera-to-world, OpenGL axes) and frame paths
+    DIR/transforms_test.json
+    DIR/train/r_000.exr (+ .png preview), DIR/test/r_000.exr, ...
+    DIR/envmap.exr
+    DIR/gt_eta.npz, DIR/gt_surface.ply   (synthetic scenes only)
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .cameras import Camera, load_transforms
+from .envmap import EnvMap
+from .errors import ClrefractError
+from .fields.base import Box
+from .imageio import atomic_path, read_exr_rgb
+
+SCENE_FILE = "scene.json"
+FORMAT = "clrefract-dataset"
+
+
+@dataclass
+class Scene:
+    box: Box
+    eta_range: tuple[float, float]
+    object: dict | None = None  # the analytic object of a synthetic scene
+    envmap: str = "envmap.exr"
+    train: str = "transforms_train.json"
+    test: str = "transforms_test.json"
+    ground_truth: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"format": FORMAT, "version": 1, "units": "mm", "box": self.box.to_dict(),
+                "eta_range": list(self.eta_range), "object": self.object,
+                "envmap": self.envmap, "train": self.train, "test": self.test,
+                "ground_truth": self.ground_truth, **self.extra}
+
+
+def write_scene(root: Path, scene: Scene) -> None:
+    with atomic_path(root / SCENE_FILE, suffix=".json") as tmp:
+        tmp.write_text(json.dumps(scene.to_dict(), indent=2) + "\n")
+
+
+def read_scene(root: Path) -> Scene:
+    path = Path(root) / SCENE_FILE
+    if not path.is_file():
+        raise ClrefractError(f"{path}: scene file not found (is {root} a clrefract dataset?)")
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ClrefractError(f"{path}: cannot read scene file ({exc})") from None
+    if not isinstance(d, dict):
+        raise ClrefractError(f"{path}: top level must be a JSON object")
+    try:
+        box = Box.from_dict(d["box"]) if "box" in d else Box()
+        eta = tuple(float(x) for x in d.get("eta_range", (1.0, 1.6)))
+        if len(eta) != 2 or not 1.0 <= eta[0] < eta[1]:
+            raise ValueError(f"eta_range must be [lo, hi] with 1 <= lo < hi, got {eta}")
+    except (KeyError, TypeError, ValueError, ClrefractError) as exc:
+        raise ClrefractError(f"{path}: bad scene description ({exc})") from None
+    known = {"format", "version", "units", "box", "eta_range", "object", "envmap", "train",
+             "test", "ground_truth"}
+    return Scene(box=box, eta_range=eta, object=d.get("object"),
+                 envmap=d.get("envmap", "envmap.exr"),
+                 train=d.get("train", "transforms_train.json"),
+                 test=d.get("test", "transforms_test.json"),
+                 ground_truth=d.get("ground_truth", {}) or {},
+                 extra={k: v for k, v in d.items() if k not in known})
+
+
+def frame_image_path(root: Path, cam: Camera) -> Path:
+    p = Path(root) / cam.file_path
+    return p if p.suffix.lower() == ".exr" else p.with_name(p.name + ".exr")
+
+
+class Dataset:
+    """A dataset folder: scene, cameras, images (read on demand) and environment map."""
+
+    def __init__(self, root):
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise ClrefractError(f"{self.root}: dataset folder not found")
+        self.scene = read_scene(self.root)
+        self.train = load_transforms(self.root / self.scene.train)
+        self.test = load_transforms(self.root / self.scene.test)
+
+    @property
+    def box(self) -> Box:
+        return self.scene.box
+
+    def envmap(self) -> EnvMap:
+        return EnvMap.from_exr(self.root / self.scene.envmap)
+
+    def image(self, cam: Camera) -> np.ndarray:
+        path = frame_image_path(self.root, cam)
+        img = read_exr_rgb(path)
+        if img.shape[:2] != (cam.height, cam.width):
+            raise ClrefractError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
+                                 f"camera says {cam.width}x{cam.height}")
+        if not np.isfinite(img).all():
+            raise ClrefractError(f"{path}: image has NaN or infinite pixels")
+        return img
+
+    def rays_and_pixels(self, split: str = "train"):
+        """All rays of a split with their target radiance: origins, dirs (n, 3), rgb (n, 3)."""
+        cams = self.train if split == "train" else self.test
+        os_, ds, px = [], [], []
+        for cam in cams:
+            o, d = cam.rays()
+            os_.append(o)
+            ds.append(d)
+            px.append(self.image(cam).reshape(-1, 3))
+        return np.concatenate(os_), np.concatenate(ds), np.concatenate(px).astype(np.float64)
+
+
+def check_dataset(root) -> list[str]:
+    """Every problem found in a dataset folder, as messages naming the file (empty: fine)."""
+    root = Path(root)
+    problems: list[str] = []
+    if not root.is_dir():
+        return [f"{root}: dataset folder not found"]
+    try:
+        scene = read_scene(root)
+    except ClrefractError as exc:
+        return [str(exc)]
+    try:
+        EnvMap.from_exr(root / scene.envmap)
+    except ClrefractError as exc:
+        problems.append(str(exc))
+    lo, hi = np.asarray(scene.box.lo), np.asarray(scene.box.hi)
+    centre, half = (lo + hi) / 2, np.linalg.norm(hi - lo) / 2
+    for split in (scene.train, scene.test):
+        try:
+            cams = load_transforms(root / split)
+        except ClrefractError as exc:
+            problems.append(str(exc))
+            continue
+        for k, cam in enumerate(cams):
+            where = f"{root / split}: frame {k} ({cam.file_path or 'no file_path'})"
+            # the view ray through the image centre must pass near the box
+            c = cam.c2w[:3, 3]
+            fwd = -cam.c2w[:3, 2] / np.linalg.norm(cam.c2w[:3, 2])
+            t = max(float((centre - c) @ fwd), 0.0)
+            if np.linalg.norm(c + t * fwd - centre) > half:
+                problems.append(f"{where}: camera does not look at the box")
+            if np.all((c > lo) & (c < hi)):
+                problems.append(f"{where}: camera is inside the box")
+            path = frame_image_path(root, cam)
+            if not path.is_file():
+                problems.append(f"{where}: image {path} is missing")
+                continue
+            try:
+                img = read_exr_rgb(path)
+            except ClrefractError as exc:
+                problems.append(str(exc))
+                continue
+            if img.shape[:2] != (cam.height, cam.width):
+                problems.append(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
+                                f"camera says {cam.width}x{cam.height}")
+            if not np.isfinite(img).all():
+                problems.append(f"{path}: {int((~np.isfinite(img)).sum())} non-finite values")
+    return problems

@@ -1,0 +1,167 @@
+"""Equirectangular HDR environment map: lookup per SPEC section 6 and a procedural default."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from .errors import ClrefractError
+from .imageio import PathLike, read_exr_rgb, write_exr_rgb
+
+
+def pixel_directions(width: int, height: int) -> np.ndarray:
+    """Unit direction (H, W, 3) float64 through each pixel centre (inverse of the lookup)."""
+    theta = (np.arange(height) + 0.5) / height * np.pi
+    phi = ((np.arange(width) + 0.5) / width - 0.5) * 2.0 * np.pi
+    st = np.sin(theta)[:, None]
+    return np.stack(
+        np.broadcast_arrays(
+            st * np.cos(phi)[None, :], st * np.sin(phi)[None, :], np.cos(theta)[:, None]
+        ),
+        axis=-1,
+    )
+
+
+class EnvMap:
+    """Linear radiance over the sphere, stored as an (H, W, 3) float32 lat-long image."""
+
+    def __init__(self, image: np.ndarray):
+        image = np.ascontiguousarray(image, dtype=np.float32)
+        if image.ndim != 3 or image.shape[2] != 3 or image.shape[0] < 1 or image.shape[1] < 1:
+            raise ValueError(f"EnvMap: expected an (H, W, 3) image, got {image.shape}")
+        self.image = image
+
+    @property
+    def height(self) -> int:
+        return self.image.shape[0]
+
+    @property
+    def width(self) -> int:
+        return self.image.shape[1]
+
+    @classmethod
+    def from_exr(cls, path: PathLike) -> EnvMap:
+        img = read_exr_rgb(path)
+        if not np.isfinite(img).all():
+            raise ClrefractError(f"{path}: environment map has NaN or infinite pixels")
+        return cls(img)
+
+    def save(self, path: PathLike) -> None:
+        write_exr_rgb(path, self.image)
+
+    def lookup(self, directions: np.ndarray) -> np.ndarray:
+        """Bilinear radiance (N, 3) float32 for directions (N, 3), which need not be unit.
+
+        A zero vector looks at the horizon (u = 0.5, v = 0.5) rather than producing NaN.
+        """
+        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        n = np.linalg.norm(d, axis=1)
+        d = d / np.maximum(n, 1e-300)[:, None]
+        h, w = self.height, self.width
+        u = 0.5 + np.arctan2(d[:, 1], d[:, 0]) / (2.0 * np.pi)
+        v = np.arccos(np.clip(d[:, 2], -1.0, 1.0)) / np.pi
+        row = v * h - 0.5
+        col = u * w - 0.5
+        r0 = np.floor(row)
+        c0 = np.floor(col)
+        fr = (row - r0)[:, None]
+        fc = (col - c0)[:, None]
+        # Clamp in v (poles repeat the edge row), wrap in u (the seam at u = 0 / 1 is continuous).
+        r0i = r0.astype(np.int64)
+        r1 = np.clip(r0i + 1, 0, h - 1)
+        r0i = np.clip(r0i, 0, h - 1)
+        c0i = np.mod(c0.astype(np.int64), w)
+        c1 = np.mod(c0i + 1, w)
+        img = self.image
+        top = img[r0i, c0i] * (1.0 - fc) + img[r0i, c1] * fc
+        bot = img[r1, c0i] * (1.0 - fc) + img[r1, c1] * fc
+        return (top * (1.0 - fr) + bot * fr).astype(np.float32)
+
+    def blurred(self, sigma_px: float) -> EnvMap:
+        """A copy blurred by a Gaussian of sigma_px pixels, wrapping in u, for coarse-to-fine."""
+        if sigma_px <= 0:
+            return EnvMap(self.image.copy())
+        out = gaussian_filter(
+            self.image, sigma=(sigma_px, sigma_px, 0), mode=("nearest", "wrap", "nearest")
+        )
+        return EnvMap(out)
+
+    @classmethod
+    def procedural(cls, width: int = 1024, height: int = 512, seed: int = 0) -> EnvMap:
+        return cls(procedural_image(width, height, seed))
+
+
+# Plane-wave octaves: frequencies in cycles per radian-ish units of k . d, drawn up to a fixed
+# maximum so that the same seed gives the same waves at every resolution; only those a map of
+# the given size resolves (>= _MIN_WAVELENGTH_PX pixels per period) are summed.
+_OCTAVES = 2.0 ** np.arange(1, 12)  # 2 .. 2048
+_WAVES_PER_OCTAVE = 10
+_MIN_WAVELENGTH_PX = 5.0
+_N_LAMPS = 5
+
+
+def procedural_image(width: int = 1024, height: int = 512, seed: int = 0) -> np.ndarray:
+    """Seeded HDR lat-long image with structure at every scale and in every direction.
+
+    Coloured sum of random plane waves on the sphere (smooth, no seam or pole artefacts),
+    times a soft checker and a grid of thin dark lines, plus a few bright lamps (5 to 50).
+    """
+    if width < 4 or height < 2:
+        raise ValueError(f"procedural envmap: size {width}x{height} too small")
+    rng = np.random.default_rng(seed)
+    n_waves = len(_OCTAVES) * _WAVES_PER_OCTAVE
+    k = rng.normal(size=(n_waves, 3))
+    k /= np.linalg.norm(k, axis=1, keepdims=True)
+    freq = np.repeat(_OCTAVES, _WAVES_PER_OCTAVE) * 2.0 ** rng.uniform(0, 1, n_waves)
+    phase = rng.uniform(0, 2 * np.pi, n_waves)
+    # Flat-ish spectrum (amplitude ~ f^-0.3) keeps fine detail strong enough to see deflections.
+    colour = rng.normal(size=(n_waves, 3)) * (freq ** -0.3)[:, None]
+    norm = np.sqrt(0.5 * (colour**2).sum(axis=0))  # std of the full sum, per channel
+    lamp_dir = rng.normal(size=(_N_LAMPS, 3))
+    lamp_dir /= np.linalg.norm(lamp_dir, axis=1, keepdims=True)
+    lamp_radius = np.deg2rad(rng.uniform(1.5, 4.0, _N_LAMPS))
+    lamp_value = rng.uniform(5.0, 50.0, _N_LAMPS)
+    lamp_tint = rng.uniform(0.6, 1.0, (_N_LAMPS, 3))
+    lamp_tint /= lamp_tint.max(axis=1, keepdims=True)
+
+    keep = freq <= min(width, 2 * height) / _MIN_WAVELENGTH_PX
+    kf = (k[keep] * freq[keep, None]).T.astype(np.float32)  # (3, n)
+    ph = phase[keep].astype(np.float32)
+    col = (colour[keep] / norm).astype(np.float32)
+
+    dirs = pixel_directions(width, height).astype(np.float32)
+    noise = np.empty((height, width, 3), np.float32)
+    rows_per_chunk = max(1, (1 << 16) // width)  # bounds the (pixels, waves) temporary
+    for r in range(0, height, rows_per_chunk):
+        d = dirs[r : r + rows_per_chunk].reshape(-1, 3)
+        noise[r : r + rows_per_chunk] = (np.sin(d @ kf + ph) @ col).reshape(-1, width, 3)
+    img = 0.35 * np.exp(0.6 * noise)
+
+    img *= _checker_and_grid(width, height)[..., None]
+
+    for ld, rad, val, tint in zip(lamp_dir, lamp_radius, lamp_value, lamp_tint, strict=True):
+        ang = np.arccos(np.clip(dirs @ ld.astype(np.float32), -1.0, 1.0))
+        edge = 2.0 * np.pi / width  # about a pixel of soft edge so bilinear lookup is smooth
+        mask = 0.5 * (1.0 - np.tanh((ang - rad) / edge))
+        img += (val * mask)[..., None] * tint.astype(np.float32)
+    return img.astype(np.float32)
+
+
+def _checker_and_grid(width: int, height: int) -> np.ndarray:
+    """(H, W) multiplier: soft 30-degree checker and dark lines every 10 degrees."""
+    x = np.arange(width) + 0.5  # pixel-centre coordinates in pixels
+    y = np.arange(height) + 0.5
+    phi = x / width * 2.0 * np.pi
+    theta = y / height * np.pi
+    # tanh of a sine: square wave whose edges are about two pixels wide.
+    sharp_x, sharp_y = width / (2 * np.pi * 12), height / (np.pi * 6)
+    cx = np.tanh(sharp_x * np.sin(12 * phi))
+    cy = np.tanh(sharp_y * np.sin(6 * theta))
+    checker = 1.0 + 0.15 * cy[:, None] * cx[None, :]
+
+    def lines(coord: np.ndarray, spacing: float) -> np.ndarray:
+        dist = np.abs(coord / spacing - np.round(coord / spacing)) * spacing
+        return np.exp(-0.5 * (dist / 0.8) ** 2)
+
+    grid = np.maximum(lines(y, height / 18)[:, None], lines(x, width / 36)[None, :])
+    return (checker * (1.0 - 0.5 * grid)).astype(np.float32)

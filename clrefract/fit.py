@@ -1,0 +1,400 @@
+"""`clrefract fit`: recover eta(x) from a dataset with the adjoint gradient and Adam.
+
+A run folder holds everything about one fit:
+    config.toml        the resolved configuration
+    metrics.jsonl      one JSON line per iteration
+    checkpoint.npz     parameters, Adam state and iteration, written atomically
+    field.npz          the fitted field, loadable by `clrefract render --field`
+    loss.png, slices.png, test/ (renders of the test views), results.json
+Batches, the environment blur and the grid resolution are functions of (seed, iteration),
+so a resumed run repeats exactly what an uninterrupted one would have done.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from .adam import Adam
+from .dataset import Dataset
+from .errors import ClrefractError
+from .imageio import atomic_path
+from .metrics import psnr_linear_batch
+from .progress import Progress
+
+try:
+    import tomllib
+except ImportError:  # Python 3.10
+    import tomli as tomllib
+
+
+@dataclass
+class FitConfig:
+    field: str = "voxel"  # "voxel" or "hashgrid"
+    # voxel grid: final resolution, and the coarse-to-fine resolutions before it
+    res: int = 64
+    res_schedule: tuple = (16, 32)
+    interp: str = "smoothstep"
+    # hash grid
+    levels: int = 8
+    features: int = 2
+    log2_table: int = 16
+    n_min: int = 8
+    n_max: int = 128
+    hidden: int = 32
+    layers: int = 2
+    eta_max: float = 0.0  # 0: the scene's upper eta bound
+    # optimisation
+    iterations: int = 600
+    batch: int = 8192
+    lr: float = 5e-3  # voxel values
+    lr_table: float = 1e-2
+    lr_mlp: float = 1e-3
+    reg: float = 1e-4  # weight of the smoothness regulariser
+    env_blur: float = 4.0  # initial environment blur in pixels, sharpened to 0
+    blur_until: float = 0.5  # fraction of the iterations over which the blur goes to 0
+    step: float = 1.0
+    precision: str = "float32"
+    loss: str = "srgb"
+    queues: int = 1
+    lanes: int = 0  # 0: device default
+    device: str = ""
+    seed: int = 0
+    checkpoint_every: int = 50
+    test_views: int = -1  # test views rendered at the end (-1: all)
+
+    def validate(self) -> None:
+        if self.field not in ("voxel", "hashgrid"):
+            raise ClrefractError(f"field must be 'voxel' or 'hashgrid', got {self.field!r}")
+        for name in ("iterations", "batch", "res", "queues"):
+            if getattr(self, name) < 1:
+                raise ClrefractError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if not (self.step > 0 and math.isfinite(self.step)):
+            raise ClrefractError(f"step must be positive, got {self.step}")
+        if self.interp not in ("smoothstep", "trilinear"):
+            raise ClrefractError(f"interp must be 'smoothstep' or 'trilinear', got {self.interp!r}")
+
+
+def load_config(path: Path | None, overrides: dict) -> FitConfig:
+    """Defaults, then the TOML file, then command-line overrides (None values ignored)."""
+    cfg = FitConfig()
+    known = {f.name: f for f in fields(FitConfig)}
+    items: dict = {}
+    if path is not None:
+        try:
+            items.update(tomllib.loads(Path(path).read_text()))
+        except FileNotFoundError:
+            raise ClrefractError(f"{path}: config file not found") from None
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise ClrefractError(f"{path}: not valid TOML ({exc})") from None
+    items.update({k: v for k, v in overrides.items() if v is not None})
+    for k, v in items.items():
+        if k not in known:
+            raise ClrefractError(f"unknown config key {k!r} (known: {', '.join(known)})")
+        default = getattr(cfg, k)
+        try:
+            v = tuple(v) if isinstance(default, tuple) else type(default)(v)
+        except (TypeError, ValueError):
+            raise ClrefractError(f"config key {k!r}: cannot use {v!r}") from None
+        setattr(cfg, k, v)
+    cfg.validate()
+    return cfg
+
+
+def _toml(cfg: FitConfig) -> str:
+    lines = []
+    for k, v in asdict(cfg).items():
+        if isinstance(v, str):
+            lines.append(f'{k} = "{v}"')
+        elif isinstance(v, bool):
+            lines.append(f"{k} = {str(v).lower()}")
+        elif isinstance(v, tuple | list):
+            lines.append(f"{k} = [{', '.join(repr(x) for x in v)}]")
+        else:
+            lines.append(f"{k} = {v!r}")
+    return "\n".join(lines) + "\n"
+
+
+def resolution_at(cfg: FitConfig, it: int) -> int:
+    """Grid resolution of a voxel fit at an iteration: the schedule splits the first half."""
+    sched = [r for r in cfg.res_schedule if r < cfg.res]
+    if not sched:
+        return cfg.res
+    span = cfg.iterations / 2 / len(sched)
+    k = int(it // span)
+    return sched[k] if k < len(sched) else cfg.res
+
+
+def blur_at(cfg: FitConfig, it: int) -> float:
+    frac = it / max(cfg.iterations * cfg.blur_until, 1)
+    return cfg.env_blur * max(0.0, 1.0 - frac)
+
+
+def batch_indices(cfg: FitConfig, it: int, n: int) -> np.ndarray:
+    rng = np.random.default_rng([cfg.seed, it])
+    return rng.integers(0, n, size=min(cfg.batch, n))
+
+
+def make_field(cfg: FitConfig, box, eta_max: float, res: int):
+    """A fresh field of the configured kind (all ones: eta = 1 everywhere)."""
+    if cfg.field == "voxel":
+        from .fields.voxel import VoxelGrid
+
+        return VoxelGrid(np.ones((res, res, res)), box, interp=cfg.interp, eta_max=eta_max)
+    from .fields.hashgrid import HashGridConfig, HashGridField
+
+    hc = HashGridConfig(levels=cfg.levels, features=cfg.features, log2_table=cfg.log2_table,
+                        n_min=cfg.n_min, n_max=cfg.n_max, hidden=cfg.hidden, layers=cfg.layers,
+                        eta_max=eta_max)
+    return HashGridField(hc, box, seed=cfg.seed)
+
+
+class Fit:
+    """One fitting run on one dataset, in one run folder."""
+
+    def __init__(self, dataset: Path, out: Path, cfg: FitConfig, stream=None):
+        from .runtime import Runtime
+
+        self.ds = Dataset(dataset)
+        self.out, self.cfg = Path(out), cfg
+        self.stream = stream or sys.stderr
+        self.runtime = Runtime(cfg.device or None, queues=cfg.queues)
+        self.box = self.ds.box
+        self.eta_max = cfg.eta_max or self.ds.scene.eta_range[1] * 1.05
+        self.origins, self.dirs, self.rgb = self.ds.rays_and_pixels("train")
+        self._env_full = self.ds.envmap()
+        self._env_cache: dict[float, object] = {}
+        self.it = 0
+        self.field = None
+        self.engine = None
+        self.adam = None
+        self.params = None
+
+    # --- field and optimiser -------------------------------------------------------------
+    def _make_field(self, res: int):
+        return make_field(self.cfg, self.box, self.eta_max, res)
+
+    def _bind(self, field) -> None:
+        from .gradient import GradientEngine
+
+        self.field = field
+        self.params = np.array(field.data(), np.float64)
+        self.engine = GradientEngine(field, self.box, step=self.cfg.step,
+                                     precision=self.cfg.precision, lanes=self.cfg.lanes or None,
+                                     runtime=self.runtime, queues=self.cfg.queues,
+                                     loss_space=self.cfg.loss)
+
+    def _groups(self):
+        return self.field.param_groups(lr=self.cfg.lr, lr_table=self.cfg.lr_table,
+                                       lr_mlp=self.cfg.lr_mlp)
+
+    def start(self) -> None:
+        res = resolution_at(self.cfg, 0)
+        self._bind(self._make_field(res))
+        self.adam = Adam(len(self.params), self._groups())
+
+    def _maybe_regrid(self) -> None:
+        if self.cfg.field != "voxel":
+            return
+        res = resolution_at(self.cfg, self.it)
+        if res == self.field.values.shape[0]:
+            return
+        # upsample eta and the Adam moments (Teh et al.); step counts carry over
+        old = self.field
+        m = old.resampled_values(self.adam.m.reshape(old.values.shape), res)
+        v = np.maximum(old.resampled_values(self.adam.v.reshape(old.values.shape), res), 0)
+        t = int(self.adam.t.max())
+        self._bind(old.resampled(res))
+        self.adam = Adam(len(self.params), self._groups())
+        self.adam.m, self.adam.v = m.ravel(), v.ravel()
+        self.adam.t[:] = t
+
+    def env_at(self, it: int):
+        sigma = round(blur_at(self.cfg, it), 1)
+        env = self._env_cache.get(sigma)
+        if env is None:
+            env = self._env_full.blurred(sigma) if sigma > 0 else self._env_full
+            self._env_cache = {sigma: env}
+        return env
+
+    # --- checkpoints -----------------------------------------------------------------------
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.out / "checkpoint.npz"
+
+    def save_checkpoint(self) -> None:
+        shape = np.array(self.field.values.shape if self.cfg.field == "voxel" else [0])
+        with atomic_path(self.checkpoint_path, suffix=".npz") as tmp:
+            np.savez(tmp, params=self.params, iteration=self.it, shape=shape,
+                     **self.adam.state())
+
+    def load_checkpoint(self) -> None:
+        path = self.checkpoint_path
+        try:
+            with np.load(path) as z:
+                params, it, shape = z["params"], int(z["iteration"]), z["shape"]
+                state = {k: z[k] for k in ("adam_m", "adam_v", "adam_t")}
+        except FileNotFoundError:
+            raise ClrefractError(f"{path}: no checkpoint to resume from") from None
+        except Exception as exc:  # noqa: BLE001 - any damage is the user's to know about
+            raise ClrefractError(f"{path}: cannot read checkpoint ({exc})") from None
+        res = int(shape[0]) if self.cfg.field == "voxel" else 0
+        self._bind(self._make_field(res) if res else self._make_field(0))
+        if len(params) != len(self.params):
+            raise ClrefractError(f"{path}: checkpoint has {len(params)} parameters, the "
+                                 f"configured field has {len(self.params)}")
+        self.params[:] = params
+        self.field.set_data(self.params)
+        self.engine.tracer.upload_field()
+        self.adam = Adam(len(self.params), self._groups())
+        self.adam.load_state(state)
+        self.it = it
+
+    # --- the loop ----------------------------------------------------------------------------
+    def step(self) -> dict:
+        self._maybe_regrid()
+        idx = batch_indices(self.cfg, self.it, len(self.origins))
+        t0 = time.perf_counter()
+        r = self.engine.loss_and_grad(self.origins[idx], self.dirs[idx], self.rgb[idx],
+                                      self.env_at(self.it))
+        reg, greg = self.field.regularizer(self.params)
+        grad = r.grad + self.cfg.reg * greg
+        if not np.all(np.isfinite(grad)):
+            raise FloatingPointError("non-finite gradient")
+        self.adam.step(self.params, grad)
+        self.field.set_data(self.params)
+        self.engine.tracer.upload_field()
+        dt = time.perf_counter() - t0
+        self.it += 1
+        exited = r.status == 0
+        return {"iteration": self.it, "loss": r.loss, "reg": float(reg),
+                "psnr": psnr_linear_batch(r.radiance[exited], self.rgb[idx][exited]),
+                "rays_per_s": len(idx) / dt, "seconds": dt,
+                "drift_mm": float(r.drift.max()), "blur": blur_at(self.cfg, self.it - 1),
+                "res": int(self.field.values.shape[0]) if self.cfg.field == "voxel" else 0}
+
+    def run(self) -> dict:
+        metrics_path = self.out / "metrics.jsonl"
+        bar = Progress(self.cfg.iterations, "fit", unit="it", stream=self.stream)
+        bar.done = self.it
+        stop = _StopOnInterrupt()
+        try:
+            with metrics_path.open("a") as mf, stop:
+                while self.it < self.cfg.iterations:
+                    if stop.requested:
+                        raise KeyboardInterrupt
+                    m = self.step()
+                    mf.write(json.dumps(m) + "\n")
+                    mf.flush()
+                    bar.update(1, loss=m["loss"], psnr=round(m["psnr"], 2),
+                               rays_s=int(m["rays_per_s"]))
+                    if self.it % self.cfg.checkpoint_every == 0:
+                        self.save_checkpoint()
+        except KeyboardInterrupt:
+            self.save_checkpoint()
+            raise ClrefractError(
+                f"interrupted at iteration {self.it}; checkpoint saved in {self.out}: "
+                "continue with --resume") from None
+        except FloatingPointError as exc:
+            raise ClrefractError(
+                f"{exc} at iteration {self.it + 1}; stopped, the last good checkpoint is "
+                f"{self.checkpoint_path} (iteration "
+                f"{self.it - self.it % self.cfg.checkpoint_every}). Try a smaller learning rate "
+                "or step.") from None
+        self.save_checkpoint()
+        self.field.save(self.out / "field.npz")
+        return self.finish()
+
+    def finish(self) -> dict:
+        from .report import write_fit_report
+
+        return write_fit_report(self)
+
+
+class _StopOnInterrupt:
+    """Ctrl-C ends the run after the iteration in flight, so the checkpoint is consistent;
+    a second Ctrl-C interrupts at once."""
+
+    def __init__(self):
+        self.requested = False
+        self._old = None
+
+    def _handler(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def __enter__(self):
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        import signal
+
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
+
+
+def _truncate_metrics(path: Path, iteration: int) -> None:
+    """Drop metric lines past the checkpoint being resumed from."""
+    if not path.is_file():
+        return
+    keep = [ln for ln in path.read_text().splitlines()
+            if ln.strip() and json.loads(ln)["iteration"] <= iteration]
+    with atomic_path(path, suffix=".jsonl") as tmp:
+        tmp.write_text("".join(ln + "\n" for ln in keep))
+
+
+def run_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False,
+            stream=None) -> dict:
+    out = Path(out)
+    if resume:
+        if not (out / "config.toml").is_file():
+            raise ClrefractError(f"{out}: no run to resume (config.toml missing)")
+        cfg = load_config(out / "config.toml", {})
+    elif (out / "checkpoint.npz").exists():
+        raise ClrefractError(f"{out} already holds a run: use --resume to continue it, or "
+                             "another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    fit = Fit(dataset, out, cfg, stream=stream)
+    if resume:
+        fit.load_checkpoint()
+        _truncate_metrics(out / "metrics.jsonl", fit.it)
+    else:
+        (out / "config.toml").write_text(_toml(cfg))
+        (out / "run.json").write_text(json.dumps({"dataset": str(Path(dataset).resolve()),
+                                                  "box": fit.box.to_dict(),
+                                                  "eta_max": fit.eta_max}, indent=2))
+        (out / "metrics.jsonl").write_text("")
+        fit.start()
+    return fit.run()
+
+
+def field_from_run(run: Path):
+    """The field of a run folder at its latest checkpoint (for rendering a run in progress)."""
+    from .fields.base import Box
+
+    run = Path(run)
+    cfg = load_config(run / "config.toml", {})
+    path = run / "checkpoint.npz"
+    try:
+        with np.load(path) as z:
+            params, shape = z["params"], z["shape"]
+        meta = json.loads((run / "run.json").read_text())
+    except Exception as exc:  # noqa: BLE001 - any damage is the user's to know about
+        raise ClrefractError(f"{run}: cannot read the run's checkpoint ({exc})") from None
+    field = make_field(cfg, Box.from_dict(meta["box"]), meta["eta_max"],
+                       int(shape[0]) if cfg.field == "voxel" else 0)
+    field.set_data(params)
+    return field

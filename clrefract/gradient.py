@@ -1,0 +1,137 @@
+"""Loss and parameter gradient of a parametric field: forward trace, photometric loss,
+adjoint backward pass, spread over several command queues.
+
+Each queue traces its share of the rays and accumulates into its own gradient buffer; the
+host sums the buffers in queue order, so the result does not depend on the number of queues
+beyond rounding.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .envmap import EnvMap
+from .errors import ClrefractError
+from .fields.base import Box, Field
+from .loss import photometric_loss
+from .runtime import Runtime
+from .tracer import InOut, Out, Status, Tracer
+
+
+@dataclass
+class GradientResult:
+    loss: float
+    grad: np.ndarray  # (n_params,) dJ/dtheta
+    radiance: np.ndarray  # (n, 3) rendered
+    status: np.ndarray  # (n,)
+    drift: np.ndarray  # (n,) |re-integrated entry point - true entry point| in mm
+    steps: int
+
+
+def box_entry(box: Box, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Where each ray enters the box (the origin itself when it starts inside)."""
+    d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (np.asarray(box.lo) - origins) / d
+        t2 = (np.asarray(box.hi) - origins) / d
+    tmin = np.nan_to_num(np.minimum(t1, t2), nan=-np.inf).max(axis=1)
+    return origins + np.maximum(tmin, 0)[:, None] * d
+
+
+class GradientEngine:
+    """Photometric loss and its gradient for `field` (its data() are the parameters)."""
+
+    def __init__(self, field: Field, box: Box, step: float = 0.5, precision: str = "float32",
+                 lanes: int | None = None, runtime: Runtime | None = None, queues: int = 1,
+                 max_steps: int | None = None, loss_space: str = "srgb"):
+        self.runtime = runtime or Runtime(queues=queues)
+        if len(self.runtime.queues) < queues:
+            raise ClrefractError(f"runtime has {len(self.runtime.queues)} queues, need {queues}")
+        self.queues = self.runtime.queues[:queues]
+        self.tracer = Tracer(field, box, step=step, integrator="rkn4", precision=precision,
+                             lanes=lanes, max_steps=max_steps, runtime=self.runtime,
+                             adjoint=True)
+        self.field, self.box, self.loss_space = field, box, loss_space
+        self._k_adjoint = self.tracer.kernels.adjoint_rays
+        self.n_shared = int(getattr(field, "n_shared", 0))
+
+    def set_params(self, params: np.ndarray) -> None:
+        self.field.set_data(params)
+        self.tracer.upload_field()
+
+    def _chunks(self, n: int) -> list[np.ndarray]:
+        return [c for c in np.array_split(np.arange(n), len(self.queues)) if len(c)]
+
+    def forward(self, origins, dirs):
+        """Trace on every queue; returns the per-chunk results in order."""
+        tr = self.tracer
+        chunks = self._chunks(len(origins))
+        pending = []
+        for q, idx in zip(self.queues, chunks):
+            o, m = tr._padded_columns(origins[idx], "ray origins")
+            d, _ = tr._padded_columns(dirs[idx], "ray directions")
+            size = len(o[0])
+            outs = [np.empty(size, tr.dtype) for _ in range(6)]
+            status, steps = np.empty(size, np.int32), np.empty(size, np.int32)
+            last = [np.empty(size, tr.dtype) for _ in range(3)]
+            args = [tr.dtype(tr.step), np.int32(tr.max_steps), *o, *d]
+            args += [Out(a) for a in outs + [status, steps] + last]
+            tr._enqueue(tr._k_trace, size // tr.lanes, args, q)
+            pending.append((idx, outs, status, steps, last))
+        for q in self.queues:
+            q.finish()
+        return pending
+
+    def loss_and_grad(self, origins: np.ndarray, dirs: np.ndarray, targets: np.ndarray,
+                      env: EnvMap) -> GradientResult:
+        tr = self.tracer
+        pending = self.forward(origins, dirs)
+        n = len(origins)
+        vel = np.empty((n, 3))
+        status = np.empty(n, np.int32)
+        steps = 0
+        for idx, outs, st, sp, _ in pending:
+            m = len(idx)
+            vel[idx] = np.stack(outs[3:6], axis=1)[:m]
+            status[idx] = st[:m]
+            steps += int(sp[:m].sum())
+        exited = status == Status.EXITED
+        loss, mu, rad = photometric_loss(env, vel, targets, weight=exited.astype(float),
+                                         space=self.loss_space)
+        mu[~exited] = 0.0
+
+        n_par = len(self.field.data())
+        jobs = []
+        for q, (idx, outs, st, sp, last) in zip(self.queues, pending):
+            size, m = len(st), len(idx)
+            mu_cols = []
+            for k in range(3):
+                col = np.zeros(size, tr.dtype)
+                col[:m] = mu[idx, k]
+                mu_cols.append(col)
+            grad = np.zeros(n_par + 1, tr.dtype)
+            items = size // tr.lanes
+            partial = np.zeros(max(items * self.n_shared, 1), tr.dtype)
+            back = [np.empty(size, tr.dtype) for _ in range(3)]
+            args = [tr.dtype(tr.step), *last, *outs[3:6], sp, *mu_cols, InOut(grad),
+                    Out(partial), *[Out(b) for b in back]]
+            tr._enqueue(self._k_adjoint, items, args, q)
+            jobs.append((idx, grad, partial, back, items))
+        total = np.zeros(n_par)
+        back_pos = np.empty((n, 3))
+        for q, (idx, grad, partial, back, items) in zip(self.queues, jobs):
+            q.finish()
+            total += grad[:n_par]
+            if self.n_shared:
+                off = self.field.shared_offset
+                total[off : off + self.n_shared] += (
+                    partial.reshape(items, self.n_shared).astype(np.float64).sum(0)
+                )
+            back_pos[idx] = np.stack(back, axis=1)[: len(idx)]
+        entry = box_entry(self.box, origins, dirs)
+        drift = np.where(exited, np.linalg.norm(back_pos - entry, axis=1), 0.0)
+        if not np.isfinite(loss) or not np.all(np.isfinite(total)):
+            raise FloatingPointError("non-finite loss or gradient")
+        return GradientResult(loss, total, rad, status, drift, steps)

@@ -1,0 +1,131 @@
+"""Image files: linear RGB EXR in and out, sRGB PNG previews."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import OpenEXR
+
+from .errors import ClrefractError
+
+PathLike = str | os.PathLike
+
+
+@contextlib.contextmanager
+def atomic_path(path: PathLike, suffix: str = "") -> Iterator[Path]:
+    """Yield a temp path beside `path`; on success it replaces `path` in one step.
+
+    Readers never see a half-written file, and a failed write leaves the old file intact.
+    `suffix` keeps the extension for writers that pick the format from it.
+    """
+    path = Path(path)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + suffix,
+                                   dir=path.parent)
+    except OSError as e:
+        raise ClrefractError(f"{path}: cannot write here ({e.strerror or e})") from None
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except OSError as e:
+        raise ClrefractError(f"{path}: cannot write ({e.strerror or e})") from None
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _rgb_channel_names(names: list[str]) -> tuple[str, str, str] | None:
+    """R,G,B if present, else X.R,X.G,X.B for a single layer X (e.g. 'rgba.R')."""
+    if {"R", "G", "B"} <= set(names):
+        return ("R", "G", "B")
+    layers = sorted({n.rsplit(".", 1)[0] for n in names if "." in n})
+    found = [ly for ly in layers if {f"{ly}.R", f"{ly}.G", f"{ly}.B"} <= set(names)]
+    if len(found) == 1:
+        ly = found[0]
+        return (f"{ly}.R", f"{ly}.G", f"{ly}.B")
+    return None
+
+
+def read_exr_rgb(path: PathLike) -> np.ndarray:
+    """Linear RGB (H, W, 3) float32 from an EXR with float or half R, G, B channels."""
+    path = Path(path)
+    if not path.is_file():
+        raise ClrefractError(f"{path}: EXR file not found")
+    try:
+        # Separate channels: we pick R,G,B by name rather than trust the packed 'RGB(A)' view.
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            channels = {name: ch.pixels for name, ch in f.channels().items()}
+    except Exception as e:  # OpenEXR raises RuntimeError with a C-level message
+        raise ClrefractError(f"{path}: not a readable EXR file ({e})") from None
+    names = _rgb_channel_names(list(channels))
+    if names is None:
+        raise ClrefractError(
+            f"{path}: EXR has no R, G, B channels (found: {', '.join(sorted(channels)) or 'none'})"
+        )
+    planes = [np.asarray(channels[n]) for n in names]
+    if any(p.ndim != 2 or p.shape != planes[0].shape for p in planes):
+        raise ClrefractError(f"{path}: R, G, B channels differ in size (subsampled channels?)")
+    return np.ascontiguousarray(np.stack(planes, axis=-1), dtype=np.float32)
+
+
+def write_exr_rgb(path: PathLike, img: np.ndarray, half: bool = False) -> None:
+    """Write (H, W, 3) linear RGB as a ZIP-compressed EXR, float32 (or half), atomically."""
+    img = np.asarray(img)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"write_exr_rgb: expected (H, W, 3), got {img.shape}")
+    data = np.ascontiguousarray(img, dtype=np.float16 if half else np.float32)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path, suffix=".exr") as tmp:
+        # A single 'RGB' array is written as the standard R, G, B channels.
+        with OpenEXR.File(header, {"RGB": data}) as f:
+            f.write(str(tmp))
+
+
+def linear_to_srgb(img: np.ndarray) -> np.ndarray:
+    """Standard sRGB OETF on values clipped to [0, 1] (NaN counts as 0); float32 out."""
+    x = np.clip(np.nan_to_num(np.asarray(img, dtype=np.float32), nan=0.0), 0.0, 1.0)
+    hi = 1.055 * np.power(x, 1.0 / 2.4, dtype=np.float32) - 0.055
+    return np.where(x <= 0.0031308, 12.92 * x, hi).astype(np.float32)
+
+
+def _to_uint8(img: np.ndarray) -> np.ndarray:
+    img = np.asarray(img)
+    if img.dtype == np.uint8:
+        return img
+    x = np.clip(np.nan_to_num(img.astype(np.float32), nan=0.0), 0.0, 1.0)
+    return np.round(x * 255.0).astype(np.uint8)
+
+
+def write_png(path: PathLike, img: np.ndarray) -> None:
+    """8-bit PNG from uint8, or from floats taken as already-encoded values in [0, 1]."""
+    img = np.asarray(img)
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3, 4)):
+        raise ValueError(f"write_png: expected (H, W) or (H, W, 1|3|4), got {img.shape}")
+    with atomic_path(path, suffix=".png") as tmp:
+        iio.imwrite(tmp, _to_uint8(img), extension=".png")
+
+
+def write_png_srgb(path: PathLike, img_linear: np.ndarray) -> None:
+    """sRGB-encoded 8-bit PNG preview of a linear image."""
+    write_png(path, linear_to_srgb(img_linear))
+
+
+def image_size(path: PathLike) -> tuple[int, int]:
+    """(width, height) of an EXR or ordinary image, reading as little as possible."""
+    path = Path(path)
+    try:
+        if path.suffix.lower() == ".exr":
+            with OpenEXR.File(str(path), header_only=True) as f:
+                lo, hi = f.header()["dataWindow"]
+            return int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
+        shape = iio.improps(path).shape
+        return int(shape[1]), int(shape[0])
+    except Exception as e:
+        raise ClrefractError(f"{path}: cannot read the image size ({e})") from None

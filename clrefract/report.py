@@ -1,0 +1,130 @@
+"""What a finished fit leaves for people to look at: curves, eta slices, test renders, scores."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .imageio import atomic_path, write_exr_rgb, write_png_srgb
+from .metrics import psnr_ssim
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_metrics(metrics_path: Path, out_png: Path) -> None:
+    rows = [json.loads(ln) for ln in Path(metrics_path).read_text().splitlines() if ln.strip()]
+    if not rows:
+        return
+    plt = _plt()
+    it = [r["iteration"] for r in rows]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    ax[0].semilogy(it, [r["loss"] for r in rows], lw=0.8)
+    ax[0].set(xlabel="iteration", ylabel="photometric loss", title="training loss")
+    ax[1].plot(it, [r["psnr"] for r in rows], lw=0.8)
+    ax[1].set(xlabel="iteration", ylabel="PSNR (dB, batch)", title="training PSNR")
+    for a in ax:
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(out_png, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
+def eta_slices(field, box, res: int = 128):
+    """eta on the three central planes (xy at z=0, xz at y=0, yz at x=0) of the box."""
+    lo, hi = np.asarray(box.lo), np.asarray(box.hi)
+    c = (lo + hi) / 2
+    out = []
+    for a, b, k in ((0, 1, 2), (0, 2, 1), (1, 2, 0)):
+        u = np.linspace(lo[a], hi[a], res)
+        v = np.linspace(lo[b], hi[b], res)
+        U, V = np.meshgrid(u, v, indexing="xy")
+        pts = np.tile(c, (U.size, 1))
+        pts[:, a], pts[:, b] = U.ravel(), V.ravel()
+        out.append(field.eval(pts)[0].reshape(res, res))
+    return out
+
+
+def plot_slices(field, box, out_png: Path, truth=None, vmax: float | None = None) -> None:
+    plt = _plt()
+    rows = [("fitted", eta_slices(field, box))]
+    if truth is not None:
+        rows.append(("ground truth", eta_slices(truth, box)))
+    vmax = vmax or max(float(np.max(s)) for _, sl in rows for s in sl)
+    fig, ax = plt.subplots(len(rows), 3, figsize=(10, 3.4 * len(rows)), squeeze=False)
+    ext = [box.lo[0], box.hi[0], box.lo[1], box.hi[1]]
+    for r, (name, sl) in enumerate(rows):
+        for k, (s, title) in enumerate(zip(sl, ("xy (z=0)", "xz (y=0)", "yz (x=0)"))):
+            im = ax[r, k].imshow(s, origin="lower", extent=ext, vmin=1.0, vmax=vmax,
+                                 cmap="viridis")
+            ax[r, k].set_title(f"{name}: eta, {title}")
+    fig.colorbar(im, ax=ax, shrink=0.8, label="eta")
+    with atomic_path(out_png, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+
+
+def render_test_views(fit, out_dir: Path, limit: int = -1) -> list[dict]:
+    """Render the dataset's test views with the fitted field; PSNR and SSIM per view."""
+    from .render import render_camera
+    from .tracer import Tracer
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tracer = Tracer(fit.field, fit.box, step=fit.cfg.step, precision=fit.cfg.precision,
+                    lanes=fit.cfg.lanes or None, runtime=fit.runtime)
+    env = fit.ds.envmap()
+    cams = fit.ds.test if limit < 0 else fit.ds.test[:limit]
+    rows = []
+    for cam in cams:
+        img = render_camera(tracer, cam, env).image
+        ref = fit.ds.image(cam)
+        psnr, ssim = psnr_ssim(img, ref)
+        stem = Path(cam.file_path).name or cam.name
+        write_exr_rgb(out_dir / f"{stem}.exr", img)
+        write_png_srgb(out_dir / f"{stem}.png", np.concatenate([img, ref], axis=1))
+        rows.append({"view": stem, "psnr": psnr, "ssim": ssim})
+    return rows
+
+
+def write_fit_report(fit) -> dict:
+    from .fields import field_from_dict
+
+    out = fit.out
+    plot_metrics(out / "metrics.jsonl", out / "loss.png")
+    truth = None
+    if fit.ds.scene.object:
+        try:
+            truth = field_from_dict(fit.ds.scene.object)
+        except Exception:  # noqa: BLE001 - a user's scene may describe objects we cannot draw
+            truth = None
+    plot_slices(fit.field, fit.box, out / "slices.png", truth=truth)
+    views = render_test_views(fit, out / "test", fit.cfg.test_views)
+    rows = [json.loads(ln) for ln in (out / "metrics.jsonl").read_text().splitlines() if ln]
+    result = {
+        "iterations": fit.it,
+        "train_seconds": float(sum(r["seconds"] for r in rows)),
+        "final_loss": rows[-1]["loss"] if rows else None,
+        "test_psnr": float(np.mean([v["psnr"] for v in views])) if views else None,
+        "test_ssim": float(np.mean([v["ssim"] for v in views])) if views else None,
+        "views": views,
+    }
+    if truth is not None:
+        from .fields.base import Box
+
+        box: Box = fit.box
+        g = np.stack(np.meshgrid(*[np.linspace(box.lo[k], box.hi[k], 48) for k in range(3)],
+                                 indexing="ij"), -1).reshape(-1, 3)
+        result["eta_rmse"] = float(np.sqrt(np.mean((fit.field.eval(g)[0] - truth.eval(g)[0])
+                                                   ** 2)))
+    with atomic_path(out / "results.json", suffix=".json") as tmp:
+        tmp.write_text(json.dumps(result, indent=2))
+    return result

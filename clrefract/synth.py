@@ -1,0 +1,182 @@
+"""`clrefract dataset make`: the synthetic refractive benchmark (SPEC section 5).
+
+Solid objects (sphere, prism, drop) are rendered by exact Snell refraction at their analytic
+surfaces (clrefract.snell), never by the eikonal tracer that fitting uses; graded-index scenes
+(luneburg, plume) by the eikonal tracer in float64 with a fine step.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .cameras import fibonacci_sphere_cameras, save_transforms
+from .dataset import Scene, write_scene
+from .envmap import EnvMap
+from .errors import ClrefractError
+from .fields.analytic import Blobs, Drop, Luneburg, Prism, Sphere
+from .fields.base import Box
+from .imageio import atomic_path, write_exr_rgb, write_png_srgb
+from .progress import Progress
+
+SOLIDS = ("sphere", "prism", "drop")
+GRADED = ("luneburg", "plume")
+SCENES = SOLIDS + GRADED
+
+
+def scene_object(name: str):
+    """The analytic object of a benchmark scene (its interface width is only used to draw
+    the ground-truth eta volume; the images use the sharp surface)."""
+    if name == "sphere":
+        return Sphere(radius=20.0, eta=1.5, width=0.8)
+    if name == "prism":
+        return Prism(side=40.0, length=40.0, eta=1.5, width=0.8, tilt=(35.0, 20.0, 10.0))
+    if name == "drop":
+        return Drop(R=18.0, H=22.0, eta=1.33, width=0.8)
+    if name == "luneburg":
+        return Luneburg(radius=20.0)
+    if name == "plume":
+        # a rising hot-gas plume: blobs stacked along z, eta - 1 around 1e-3
+        z = np.linspace(-25, 25, 6)
+        centers = np.column_stack([3 * np.sin(z / 9), 2 * np.cos(z / 7), z])
+        return Blobs(centers=centers.tolist(), amplitudes=(1e-3 * np.linspace(1.2, 0.6, 6))
+                     .tolist(), sigmas=np.linspace(6, 11, 6).tolist())
+    raise ClrefractError(f"unknown scene {name!r}; scenes are {', '.join(SCENES)}")
+
+
+@dataclass
+class MakeOptions:
+    views: int = 100
+    res: int = 128
+    test_every: int = 5
+    seed: int = 0
+    envmap: str | None = None  # a user's EXR instead of the procedural map
+    env_width: int = 2048
+    radius: float = 200.0
+    fov_y: float = 30.0
+    device: str | None = None
+    volume_res: int = 128
+
+
+def _ray_renderer(name: str, obj, box: Box, runtime):
+    """A function (origins, dirs) -> (exit directions, ok mask)."""
+    if name in SOLIDS:
+        from .snell import SnellRenderer
+
+        snell = SnellRenderer(obj, box, precision="float64", runtime=runtime)
+
+        def trace(o, d):
+            r = snell.trace(o, d)
+            return r.direction, (r.status == 0) | (r.status == 1)
+
+        return trace
+    from .tracer import Status, Tracer
+
+    tracer = Tracer(obj, box, step=0.05, integrator="rkn4", precision="float64",
+                    runtime=runtime, max_steps=20000)
+
+    def trace(o, d):
+        r = tracer.trace(o, d)
+        return r.direction, (r.status == Status.EXITED) | (r.status == Status.MISSED)
+
+    return trace
+
+
+def write_ply(path: Path, verts: np.ndarray, faces: np.ndarray) -> None:
+    """Binary little-endian PLY triangle mesh."""
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment clrefract ground truth, mm\n"
+              f"element vertex {len(verts)}\nproperty float x\nproperty float y\n"
+              f"property float z\nelement face {len(faces)}\n"
+              "property list uchar int vertex_indices\nend_header\n")
+    f = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    f["n"], f["i"] = 3, faces
+    with atomic_path(path, suffix=".ply") as tmp, open(tmp, "wb") as fh:
+        fh.write(header.encode())
+        fh.write(np.asarray(verts, "<f4").tobytes())
+        fh.write(f.tobytes())
+
+
+def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    head = data[:end].decode().splitlines()
+    nv = int(next(ln for ln in head if ln.startswith("element vertex")).split()[-1])
+    nf = int(next(ln for ln in head if ln.startswith("element face")).split()[-1])
+    verts = np.frombuffer(data, "<f4", nv * 3, end).reshape(nv, 3)
+    f = np.frombuffer(data, [("n", "u1"), ("i", "<i4", (3,))], nf, end + nv * 12)
+    return verts.astype(np.float64), f["i"].astype(np.int64)
+
+
+def surface_mesh(obj, spacing: float = 0.4):
+    """Marching cubes of the object's sharp surface: the signed distance for solids, the
+    level halfway between 1 and the peak index for graded scenes."""
+    from skimage.measure import marching_cubes
+
+    ext = 32.0
+    n = int(2 * ext / spacing) + 1
+    ax = np.linspace(-ext, ext, n)
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    if hasattr(obj, "sdf"):
+        vol, level = obj.sdf(pts)[0].reshape(n, n, n), 0.0
+    else:
+        eta = obj.eval(pts)[0].reshape(n, n, n)
+        vol, level = -eta, -(1 + (eta.max() - 1) / 2)
+    verts, faces, _, _ = marching_cubes(vol, level, spacing=(spacing,) * 3)
+    return verts - ext, faces
+
+
+def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None) -> dict:
+    from .fields.voxel import VoxelGrid
+    from .runtime import Runtime
+
+    t_start = time.perf_counter()
+    obj = scene_object(name)
+    box = Box()
+    out = Path(out)
+    (out / "train").mkdir(parents=True, exist_ok=True)
+    (out / "test").mkdir(parents=True, exist_ok=True)
+    if opt.views < 2 or opt.res < 4 or opt.test_every < 2:
+        raise ClrefractError("need at least 2 views, 4 pixels and --test-every >= 2")
+    env = (EnvMap.from_exr(opt.envmap) if opt.envmap
+           else EnvMap.procedural(opt.env_width, opt.env_width // 2, seed=opt.seed))
+    env.save(out / "envmap.exr")
+    write_png_srgb(out / "envmap.png", env.image)
+    runtime = Runtime(opt.device)
+    trace = _ray_renderer(name, obj, box, runtime)
+    cams = fibonacci_sphere_cameras(opt.views, radius=opt.radius, width=opt.res,
+                                    height=opt.res, fov_y_deg=opt.fov_y)
+    train, test = [], []
+    bar = Progress(opt.views, f"dataset {name}", unit="views", stream=stream)
+    bad_total = 0
+    for k, cam in enumerate(cams):
+        split = "test" if k % opt.test_every == 0 else "train"
+        cam.file_path = f"./{split}/r_{k:03d}"
+        cam.name = f"r_{k:03d}"
+        o, d = cam.rays()
+        exit_dir, ok = trace(o, d)
+        img = env.lookup(exit_dir)
+        img[~ok] = 0.0  # rays trapped by total internal reflection carry no light here
+        bad_total += int((~ok).sum())
+        img = img.reshape(cam.height, cam.width, 3)
+        write_exr_rgb(out / split / f"r_{k:03d}.exr", img)
+        write_png_srgb(out / split / f"r_{k:03d}.png", img)
+        (test if split == "test" else train).append(cam)
+        bar.update(1)
+    save_transforms(out / "transforms_train.json", train)
+    save_transforms(out / "transforms_test.json", test)
+    t_views = time.perf_counter() - t_start
+    VoxelGrid.from_field(obj, box, opt.volume_res, "trilinear").save(out / "gt_eta.npz")
+    verts, faces = surface_mesh(obj)
+    write_ply(out / "gt_surface.ply", verts, faces)
+    eta_hi = float(obj.eta_max)
+    scene = Scene(box=box, eta_range=(1.0, eta_hi), object=obj.to_dict(),
+                  ground_truth={"eta_volume": "gt_eta.npz", "surface": "gt_surface.ply",
+                                "renderer": "snell" if name in SOLIDS else "eikonal-f64"},
+                  extra={"name": name, "seed": opt.seed, "views": opt.views, "res": opt.res,
+                         "test_every": opt.test_every, "untraced_pixels": bad_total})
+    write_scene(out, scene)
+    return {"scene": name, "views": opt.views, "res": opt.res, "seconds_views": t_views,
+            "seconds_total": time.perf_counter() - t_start, "untraced_pixels": bad_total}
