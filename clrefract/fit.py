@@ -56,6 +56,7 @@ class FitConfig:
     lr: float = 5e-3  # voxel values
     lr_table: float = 1e-2
     lr_mlp: float = 1e-3
+    lr_final: float = 0.1  # learning rates decay exponentially to this fraction
     reg: float = 1e-4  # weight of the smoothness regulariser
     env_blur: float = 4.0  # initial environment blur in pixels, sharpened to 0
     blur_until: float = 0.5  # fraction of the iterations over which the blur goes to 0
@@ -267,7 +268,9 @@ class Fit:
         grad = r.grad + self.cfg.reg * greg
         if not np.all(np.isfinite(grad)):
             raise FloatingPointError("non-finite gradient")
-        self.adam.step(self.params, grad)
+        self.adam.step(self.params, grad, lr_scale=self.cfg.lr_final ** (self.it / self.cfg.iterations))
+        if self.cfg.field == "voxel":  # keep node values physical: 1 <= eta <= eta_max
+            np.clip(self.params, 1.0, self.eta_max, out=self.params)
         self.field.set_data(self.params)
         self.engine.tracer.upload_field()
         dt = time.perf_counter() - t0

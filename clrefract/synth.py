@@ -128,12 +128,14 @@ def surface_mesh(obj, spacing: float = 0.4):
     return verts - ext, faces
 
 
-def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None) -> dict:
+def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) -> dict:
+    """Write the dataset of a benchmark scene (or of `obj`, any analytic field, rendered as a
+    graded-index scene under the name `name`)."""
     from .fields.voxel import VoxelGrid
     from .runtime import Runtime
 
     t_start = time.perf_counter()
-    obj = scene_object(name)
+    obj = scene_object(name) if obj is None else obj
     box = Box()
     out = Path(out)
     (out / "train").mkdir(parents=True, exist_ok=True)
@@ -145,7 +147,7 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None) -> dict:
     env.save(out / "envmap.exr")
     write_png_srgb(out / "envmap.png", env.image)
     runtime = Runtime(opt.device)
-    trace = _ray_renderer(name, obj, box, runtime)
+    trace = _ray_renderer(name if name in SCENES else "graded", obj, box, runtime)
     cams = fibonacci_sphere_cameras(opt.views, radius=opt.radius, width=opt.res,
                                     height=opt.res, fov_y_deg=opt.fov_y)
     train, test = [], []

@@ -1,164 +1,349 @@
-"""Voxel-grid index field: res^3 node values over the box (the paper's grid baseline).
+"""Voxel-grid index field: node samples of eta, trilinear (C0) or smoothstep (C1) interpolation.
 
-eta = 1 + W(x) (g(x) - 1), g the trilinear or smoothstep-weighted (C1) interpolant of the
-node values and W the box window. The adjoint pass needs second derivatives of eta: with
-trilinear weights they are Dirac masses on the cell faces that a pointwise adjoint misses,
-so fitting uses smoothstep weights.
+Layout, shared with kernels_cl/field_voxel.cl and kernels_cl/voxel_adjoint.cl:
+- values[i, j, k] is eta at the node box.lo + (i hx, j hy, k hz), h = box.size / (n - 1):
+  node 0 lies on the low wall and node n - 1 on the high wall of each axis.
+- On the device the values are flattened in NumPy C order (x slowest):
+  fd[(i * ny + j) * nz + k] = values[i, j, k]; fp holds nothing.
+- g(x) interpolates the cell holding x with per-axis weights 1 - s(t), s(t), t in [0, 1] the
+  position inside the cell; s(t) = t ("trilinear", C0) or s(t) = 3t^2 - 2t^3 ("smoothstep",
+  C1: continuous gradient, non-zero Hessian diagonal). Points outside the grid are clamped
+  onto it (their clamped coordinates have zero derivative). Trilinear has Dirac second
+  derivatives on the cell faces that a pointwise adjoint misses, so fits use smoothstep; its
+  price: s'(0) = s'(1) = 0, so the derivative across every node plane is zero and a linear
+  ramp of nodes becomes smooth terraces (trilinear reproduces it exactly).
+- eta = 1 + W (g - 1), W the box window (1 inside, 0 within the margin of the walls), so rays
+  leave the box in straight lines. The gradient is the exact derivative of this expression.
 """
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
-from scipy.ndimage import map_coordinates
 
-from ..adam import ParamGroup
 from ..errors import ClrefractError
 from .base import Box, Field, box_window
 
 INTERPS = ("trilinear", "smoothstep")
+_CHUNK = 1 << 18  # points per block in the NumPy reference (bounds temporary memory)
+
+
+def _axis(x, lo, h, n, smooth):
+    """Cell index c in [0, n-2], weight s of the high node and ds/dx along one axis."""
+    u = (x - lo) / h
+    uc = np.clip(u, 0.0, n - 1.0)
+    c = np.clip(np.floor(uc).astype(np.int64), 0, n - 2)
+    t = uc - c
+    if smooth:
+        s, ds = t * t * (3 - 2 * t), 6 * t * (1 - t) / h
+    else:
+        s, ds = t, np.full_like(t, 1.0 / h)
+    return c, s, np.where(u == uc, ds, 0.0)
+
+
+def _lerp(a, b, s):
+    return a + (b - a) * s
+
+
+def interpolate(values, box: Box, pts, smooth: bool):
+    """The interpolant g of node `values` (no window) and its gradient at points (n, 3)."""
+    pts = np.asarray(pts, np.float64)
+    lo, h = np.asarray(box.lo, float), box.size / (np.asarray(values.shape) - 1)
+    g = np.empty(len(pts))
+    grad = np.empty((len(pts), 3))
+    for a in range(0, len(pts), _CHUNK):
+        p = pts[a : a + _CHUNK]
+        i, sx, dsx = _axis(p[:, 0], lo[0], h[0], values.shape[0], smooth)
+        j, sy, dsy = _axis(p[:, 1], lo[1], h[1], values.shape[1], smooth)
+        k, sz, dsz = _axis(p[:, 2], lo[2], h[2], values.shape[2], smooth)
+        v = {
+            (di, dj, dk): values[i + di, j + dj, k + dk]
+            for di in (0, 1)
+            for dj in (0, 1)
+            for dk in (0, 1)
+        }
+        # along z, then y, then x; the same order of operations as the kernel
+        v00, v01 = _lerp(v[0, 0, 0], v[0, 0, 1], sz), _lerp(v[0, 1, 0], v[0, 1, 1], sz)
+        v10, v11 = _lerp(v[1, 0, 0], v[1, 0, 1], sz), _lerp(v[1, 1, 0], v[1, 1, 1], sz)
+        v0, v1 = _lerp(v00, v01, sy), _lerp(v10, v11, sy)
+        z0 = _lerp(v[0, 0, 1] - v[0, 0, 0], v[0, 1, 1] - v[0, 1, 0], sy)
+        z1 = _lerp(v[1, 0, 1] - v[1, 0, 0], v[1, 1, 1] - v[1, 1, 0], sy)
+        g[a : a + _CHUNK] = _lerp(v0, v1, sx)
+        grad[a : a + _CHUNK, 0] = (v1 - v0) * dsx
+        grad[a : a + _CHUNK, 1] = _lerp(v01 - v00, v11 - v10, sx) * dsy
+        grad[a : a + _CHUNK, 2] = _lerp(z0, z1, sx) * dsz
+    return g, grad
+
+
+def _check_values(values: np.ndarray, bound: float | None) -> None:
+    """Shape and finiteness always; the range [1, bound] where a bound is given."""
+    if values.ndim != 3 or min(values.shape) < 2:
+        raise ClrefractError(
+            f"voxel values must be a 3-D array with at least 2 nodes per axis, got shape "
+            f"{values.shape}"
+        )
+    if not np.all(np.isfinite(values)):
+        bad = int(np.sum(~np.isfinite(values)))
+        raise ClrefractError(f"voxel values contain {bad} non-finite entries")
+    if bound is not None:
+        _check_at_least_one(values)
+        if values.max() > bound:
+            raise ClrefractError(
+                f"voxel values exceed eta_max {bound:.6g} (maximum {values.max():.6g})"
+            )
+
+
+def _check_at_least_one(values: np.ndarray) -> None:
+    if values.min() < 1.0:
+        raise ClrefractError(
+            f"voxel values must be at least 1 (eta of the surrounding air), "
+            f"minimum is {values.min():.6g}"
+        )
 
 
 class VoxelGrid(Field):
+    """eta on a node-centred grid spanning `box` (see the module docstring for the layout).
+
+    values: (nx, ny, nz) array of eta at the nodes, every entry finite.
+    interp: "trilinear" (C0) or "smoothstep" (C1).
+    eta_max: optional bound. With it the values must lie in [1, eta_max] and set_data()
+             projects new values onto that range (a constrained fit); without it they are
+             free (any finite value: finite-difference checks, experiments), but only grids
+             with every value >= 1 can be saved. The eta_max property is the largest value.
+    """
+
     kind = "voxel"
     source = "field_voxel.cl"
     adjoint_source = "voxel_adjoint.cl"
 
-    def __init__(self, values: np.ndarray, box: Box | None = None, interp: str = "smoothstep",
-                 eta_max: float | None = None):
-        values = np.array(values, dtype=np.float64)
-        if values.ndim != 3 or min(values.shape) < 2:
-            raise ClrefractError(f"voxel grid needs a 3-D array of at least 2^3, got "
-                                 f"{values.shape}")
+    def __init__(
+        self,
+        values,
+        box: Box | None = None,
+        interp: str = "smoothstep",
+        eta_max: float | None = None,
+    ):
         if interp not in INTERPS:
             raise ClrefractError(f"voxel interp must be one of {INTERPS}, got {interp!r}")
-        self.values, self.box, self.interp = values, box or Box(), interp
-        self._eta_max = eta_max
+        if eta_max is not None and not (np.isfinite(eta_max) and eta_max >= 1):
+            raise ClrefractError(f"voxel eta_max must be a finite number >= 1, got {eta_max!r}")
+        self.values = np.array(values, dtype=np.float64, order="C")
+        self.eta_bound = None if eta_max is None else float(eta_max)
+        _check_values(self.values, self.eta_bound)
+        self.box = box or Box()
+        self.interp = interp
 
-    # --- Field ---------------------------------------------------------------------------
-    def defines(self):
-        nx, ny, nz = self.values.shape
-        return {"FIELD_VOXEL": 1, "VOX_NX": nx, "VOX_NY": ny, "VOX_NZ": nz,
-                "VOX_SMOOTH": int(self.interp == "smoothstep")}
+    # --- what the tracer needs ---------------------------------------------------------------
+    @property
+    def smooth(self) -> bool:
+        return self.interp == "smoothstep"
 
-    def params(self):
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(int(n) for n in self.values.shape)
+
+    @property
+    def spacing(self) -> np.ndarray:
+        """Node spacing (hx, hy, hz) in mm."""
+        return self.box.size / (np.asarray(self.values.shape) - 1)
+
+    def defines(self) -> dict:
+        nx, ny, nz = self.shape
+        return {
+            "FIELD_VOXEL": 1,
+            "VOX_NX": nx,
+            "VOX_NY": ny,
+            "VOX_NZ": nz,
+            "VOX_SMOOTH": int(self.smooth),
+        }
+
+    def params(self) -> np.ndarray:
         return np.zeros(1)
 
-    def data(self):
-        return self.values.ravel()
-
-    def set_data(self, params: np.ndarray) -> None:
-        self.values = np.asarray(params, np.float64).reshape(self.values.shape).copy()
+    def data(self) -> np.ndarray:
+        """The node values flattened in C order: index (i * ny + j) * nz + k."""
+        return self.values.reshape(-1)
 
     def uses_window(self) -> bool:
         return True
 
     @property
     def eta_max(self) -> float:
-        return float(self._eta_max or self.values.max())
-
-    @property
-    def spacing(self) -> np.ndarray:
-        return self.box.size / (np.array(self.values.shape) - 1)
+        return float(self.values.max())
 
     @property
     def suggested_step(self) -> float:
-        return float(min(0.5, self.spacing.min() / 2))
+        """Two steps or more per cell: a step does not jump over a cell's gradient."""
+        return float(min(0.5, 0.5 * self.spacing.min()))
+
+    def interpolant(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """g (n,) and grad g (n, 3) at points (n, 3): the interpolated nodes, no window."""
+        return interpolate(self.values, self.box, pts, self.smooth)
+
+    def eval(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        pts = np.asarray(pts, np.float64)
+        g, dg = self.interpolant(pts)
+        w, dw = box_window(self.box, pts)
+        g1 = g - 1.0
+        return 1.0 + w * g1, dw * g1[:, None] + w[:, None] * dg
 
     def to_dict(self) -> dict:
-        return {"kind": "voxel", "shape": list(self.values.shape), "interp": self.interp,
-                "box": self.box.to_dict()}
+        """Metadata only (the values live in the .npz file)."""
+        return {
+            "kind": self.kind,
+            "interp": self.interp,
+            "shape": list(self.shape),
+            "box": self.box.to_dict(),
+            "eta_max": self.eta_max,
+            "eta_bound": self.eta_bound,
+        }
 
-    def eval(self, pts):
-        pts = np.asarray(pts, np.float64)
-        n = np.array(self.values.shape)
-        u = np.clip((pts - np.asarray(self.box.lo)) / self.spacing, 0, n - 1)
-        i = np.minimum(np.floor(u).astype(int), n - 2)
-        t = u - i
-        if self.interp == "smoothstep":
-            s, ds = t * t * (3 - 2 * t), 6 * t * (1 - t)
-        else:
-            s, ds = t, np.ones_like(t)
-        ds = ds / self.spacing
-        g = np.zeros(len(pts))
-        gg = np.zeros((len(pts), 3))
-        for a in (0, 1):
-            wx, dx = (s[:, 0], ds[:, 0]) if a else (1 - s[:, 0], -ds[:, 0])
-            for b in (0, 1):
-                wy, dy = (s[:, 1], ds[:, 1]) if b else (1 - s[:, 1], -ds[:, 1])
-                for c in (0, 1):
-                    wz, dz = (s[:, 2], ds[:, 2]) if c else (1 - s[:, 2], -ds[:, 2])
-                    th = self.values[i[:, 0] + a, i[:, 1] + b, i[:, 2] + c]
-                    g += wx * wy * wz * th
-                    gg += np.column_stack([dx * wy * wz, wx * dy * wz, wx * wy * dz]) * th[:, None]
-        w, gw = box_window(self.box, pts)
-        return 1 + w * (g - 1), gw * (g - 1)[:, None] + w[:, None] * gg
+    # --- fitting ----------------------------------------------------------------------------
+    def set_data(self, params: np.ndarray) -> None:
+        """Take new node values (flat, C order). With an eta_max bound they are first
+        projected onto [1, eta_max] in place, so the optimiser's copy and the field agree."""
+        if params.shape != (self.values.size,):
+            raise ClrefractError(
+                f"voxel grid has {self.values.size} values, got parameters of shape {params.shape}"
+            )
+        if not np.all(np.isfinite(params)):
+            raise ClrefractError("voxel parameters contain non-finite values")
+        if self.eta_bound is not None:
+            np.clip(params, 1.0, self.eta_bound, out=params)
+        self.values = np.array(params, np.float64).reshape(self.values.shape)
 
-    # --- fitting -------------------------------------------------------------------------
-    def param_groups(self, lr: float, **_) -> list[ParamGroup]:
+    def param_groups(self, lr: float, **_) -> list:
+        from ..adam import ParamGroup
+
         return [ParamGroup("voxels", 0, self.values.size, lr)]
 
     def regularizer(self, params: np.ndarray) -> tuple[float, np.ndarray]:
-        """Mean squared difference of neighbouring nodes (a discrete |grad eta|^2)."""
-        v = np.asarray(params).reshape(self.values.shape)
+        """Mean squared difference of neighbouring nodes over every grid edge (a discrete
+        |grad eta|^2 in units of cells), and its gradient with respect to params."""
+        v = np.asarray(params, np.float64).reshape(self.values.shape)
         grad = np.zeros_like(v)
-        total, count = 0.0, 0
-        for ax in range(3):
-            d = np.diff(v, axis=ax)
-            total += float((d * d).sum())
-            count += d.size
-            sl_hi = [slice(None)] * 3
-            sl_lo = [slice(None)] * 3
-            sl_hi[ax], sl_lo[ax] = slice(1, None), slice(None, -1)
-            grad[tuple(sl_hi)] += 2 * d
-            grad[tuple(sl_lo)] -= 2 * d
-        return total / count, grad.ravel() / count
+        diffs = [np.diff(v, axis=ax) for ax in range(3)]
+        count = sum(d.size for d in diffs)
+        for ax, d in enumerate(diffs):
+            lo, hi = [slice(None)] * 3, [slice(None)] * 3
+            lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+            grad[tuple(lo)] -= 2 * d
+            grad[tuple(hi)] += 2 * d
+        return sum(float((d * d).sum()) for d in diffs) / count, grad.reshape(-1) / count
 
-    def resampled_values(self, arr: np.ndarray, res: int) -> np.ndarray:
-        """A node array of this grid's shape resampled (trilinearly) to res^3 nodes."""
-        n = np.array(arr.shape)
-        coords = np.stack(np.meshgrid(*[np.linspace(0, n[k] - 1, res) for k in range(3)],
-                                      indexing="ij"))
-        return map_coordinates(arr, coords, order=1, mode="nearest")
+    def node_points(self, shape=None) -> np.ndarray:
+        """Positions (n, 3) of the nodes of a grid of `shape` over this box, C order."""
+        return _nodes(self.box, self.shape if shape is None else shape)
 
-    def resampled(self, res: int) -> VoxelGrid:
-        return VoxelGrid(self.resampled_values(self.values, res), self.box, self.interp,
-                         self._eta_max)
+    def resampled_values(self, a: np.ndarray, res) -> np.ndarray:
+        """An array `a` of node values on this grid (eta, Adam moments) resampled trilinearly
+        onto a grid of res nodes per axis (int or 3 ints) over the same box. Trilinear even
+        for smoothstep grids: it does not copy the smoothstep plateaus at the old nodes."""
+        shape = _shape(res)
+        a = np.asarray(a, np.float64).reshape(self.values.shape)
+        g, _ = interpolate(a, self.box, _nodes(self.box, shape), smooth=False)
+        return g.reshape(shape)
+
+    def resampled(self, res) -> VoxelGrid:
+        """The same field on a grid of `res` nodes per axis (coarse-to-fine fitting)."""
+        return VoxelGrid(
+            self.resampled_values(self.values, res), self.box, self.interp, self.eta_bound
+        )
 
     @classmethod
-    def from_field(cls, field: Field, box: Box, res: int, interp: str = "smoothstep"):
-        ax = [np.linspace(box.lo[k], box.hi[k], res) for k in range(3)]
-        pts = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
-        vals = np.concatenate([field.eval(pts[s : s + (1 << 18)])[0]
-                               for s in range(0, len(pts), 1 << 18)])
-        return cls(vals.reshape(res, res, res), box, interp)
+    def from_field(
+        cls,
+        field: Field,
+        box: Box | None = None,
+        res=64,
+        interp: str = "smoothstep",
+        eta_max: float | None = None,
+    ) -> VoxelGrid:
+        """Sample any field's eta (its NumPy reference) at the nodes of a res^3 grid
+        (res: int or 3 ints)."""
+        box = box or Box()
+        shape = _shape(res)
+        pts = _nodes(box, shape)
+        eta = np.concatenate(
+            [field.eval(pts[a : a + _CHUNK])[0] for a in range(0, len(pts), _CHUNK)]
+        )
+        return cls(eta.reshape(shape), box, interp, eta_max)
 
-    # --- files ---------------------------------------------------------------------------
+    # --- files ------------------------------------------------------------------------------
     def save(self, path) -> None:
-        from ..imageio import atomic_path
-
-        with atomic_path(path, suffix=".npz") as tmp:
-            np.savez_compressed(tmp, kind="voxel", values=self.values.astype(np.float32),
-                                lo=self.box.lo, hi=self.box.hi, margin=self.box.margin,
-                                interp=self.interp)
+        """Write an .npz (values, box lo/hi/margin, interp, eta bound) atomically."""
+        path = Path(path)
+        try:
+            _check_at_least_one(self.values)
+        except ClrefractError as exc:
+            raise ClrefractError(f"{path}: cannot save: {exc}") from None
+        fd, tmp = tempfile.mkstemp(dir=path.parent or ".", prefix=path.name, suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez_compressed(
+                    f,
+                    kind="voxel",
+                    values=self.values,
+                    lo=np.asarray(self.box.lo),
+                    hi=np.asarray(self.box.hi),
+                    margin=self.box.margin,
+                    interp=self.interp,
+                    eta_bound=np.nan if self.eta_bound is None else self.eta_bound,
+                )
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
 
     @classmethod
     def load(cls, path) -> VoxelGrid:
+        """Read a grid written by save(); every problem is a ClrefractError naming the file."""
         path = Path(path)
+        if not path.is_file():
+            raise ClrefractError(f"{path}: voxel grid file not found")
+        keys = ("values", "lo", "hi", "margin")
         try:
             with np.load(path, allow_pickle=False) as z:
+                missing = [k for k in keys if k not in z.files]
+                if missing:
+                    raise ClrefractError(
+                        f"{path}: not a voxel grid file (missing {', '.join(missing)})"
+                    )
+                kind = str(z["kind"]) if "kind" in z.files else "voxel"
                 values = np.asarray(z["values"], np.float64)
-                box = Box(tuple(z["lo"]), tuple(z["hi"]), float(z["margin"]))
-                interp = str(z["interp"]) if "interp" in z else "smoothstep"
-        except FileNotFoundError:
-            raise ClrefractError(f"{path}: voxel grid file not found") from None
-        except (KeyError, ValueError, OSError) as exc:
-            raise ClrefractError(f"{path}: not a voxel grid file ({exc})") from None
-        if values.ndim != 3:
-            raise ClrefractError(f"{path}: values must be a 3-D array, got {values.shape}")
-        if not np.all(np.isfinite(values)):
-            raise ClrefractError(f"{path}: values contain NaN or infinity")
-        if values.min() < 1.0 - 1e-6:
-            raise ClrefractError(f"{path}: eta below 1 ({values.min():.4g}) is not physical")
-        return cls(values, box, interp)
+                lo, hi = np.asarray(z["lo"], np.float64), np.asarray(z["hi"], np.float64)
+                margin = float(z["margin"])
+                interp = str(z["interp"]) if "interp" in z.files else "smoothstep"
+                bound = float(z["eta_bound"]) if "eta_bound" in z.files else np.nan
+        except ClrefractError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - any unreadable file is the user's to fix
+            raise ClrefractError(f"{path}: cannot read voxel grid ({exc})") from None
+        if kind != "voxel":
+            raise ClrefractError(f"{path}: holds a {kind!r} field, not a voxel grid")
+        if lo.shape != (3,) or hi.shape != (3,):
+            raise ClrefractError(
+                f"{path}: box lo and hi must have 3 entries, got shapes {lo.shape} and {hi.shape}"
+            )
+        try:
+            box = Box(tuple(lo.tolist()), tuple(hi.tolist()), margin)
+            grid = cls(values, box, interp, None if np.isnan(bound) else bound)
+            _check_at_least_one(grid.values)
+            return grid
+        except ClrefractError as exc:
+            raise ClrefractError(f"{path}: {exc}") from None
+
+
+def _shape(res) -> tuple[int, int, int]:
+    shape = (int(res),) * 3 if np.ndim(res) == 0 else tuple(int(n) for n in res)
+    if len(shape) != 3 or min(shape) < 2:
+        raise ClrefractError(f"voxel resolution must be >= 2 nodes per axis, got {res!r}")
+    return shape
+
+
+def _nodes(box: Box, shape) -> np.ndarray:
+    axes = [np.linspace(lo, hi, n) for lo, hi, n in zip(box.lo, box.hi, shape, strict=True)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
