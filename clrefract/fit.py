@@ -287,11 +287,15 @@ class Fit:
         bar = Progress(self.cfg.iterations, "fit", unit="it", stream=self.stream)
         bar.done = self.it
         stop = _StopOnInterrupt()
+        last_ckpt = self.it
         try:
             with metrics_path.open("a") as mf, stop:
                 while self.it < self.cfg.iterations:
                     if stop.requested:
-                        raise KeyboardInterrupt
+                        self.save_checkpoint()
+                        raise ClrefractError(
+                            f"interrupted at iteration {self.it}; checkpoint saved in "
+                            f"{self.out}: continue with --resume")
                     m = self.step()
                     mf.write(json.dumps(m) + "\n")
                     mf.flush()
@@ -299,17 +303,17 @@ class Fit:
                                rays_s=int(m["rays_per_s"]))
                     if self.it % self.cfg.checkpoint_every == 0:
                         self.save_checkpoint()
+                        last_ckpt = self.it
         except KeyboardInterrupt:
-            self.save_checkpoint()
+            # a second Ctrl-C may have cut an update short: keep the last whole checkpoint
             raise ClrefractError(
-                f"interrupted at iteration {self.it}; checkpoint saved in {self.out}: "
-                "continue with --resume") from None
+                f"interrupted; the checkpoint of iteration {last_ckpt} in {self.out} is "
+                "intact: continue with --resume") from None
         except FloatingPointError as exc:
             raise ClrefractError(
                 f"{exc} at iteration {self.it + 1}; stopped, the last good checkpoint is "
-                f"{self.checkpoint_path} (iteration "
-                f"{self.it - self.it % self.cfg.checkpoint_every}). Try a smaller learning rate "
-                "or step.") from None
+                f"{self.checkpoint_path} (iteration {last_ckpt}). Try a smaller learning "
+                "rate or step.") from None
         self.save_checkpoint()
         self.field.save(self.out / "field.npz")
         return self.finish()
