@@ -167,5 +167,6 @@ def check_dataset(root) -> list[str]:
                 problems.append(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
                                 f"camera says {cam.width}x{cam.height}")
             if not np.isfinite(img).all():
-                problems.append(f"{path}: {int((~np.isfinite(img)).sum())} non-finite values")
+                bad = int((~np.isfinite(img)).any(axis=-1).sum())
+                problems.append(f"{path}: {bad} pixel(s) with non-finite values")
     return problems
