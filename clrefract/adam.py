@@ -21,8 +21,14 @@ class ParamGroup:
 
 
 class Adam:
-    def __init__(self, n: int, groups: list[ParamGroup], beta1: float = 0.9,
-                 beta2: float = 0.99, eps: float = 1e-15):
+    def __init__(
+        self,
+        n: int,
+        groups: list[ParamGroup],
+        beta1: float = 0.9,
+        beta2: float = 0.99,
+        eps: float = 1e-15,
+    ):
         self.groups, self.beta1, self.beta2, self.eps = groups, beta1, beta2, eps
         self.m = np.zeros(n)
         self.v = np.zeros(n)
@@ -51,5 +57,8 @@ class Adam:
         return {"adam_m": self.m, "adam_v": self.v, "adam_t": self.t}
 
     def load_state(self, d: dict) -> None:
-        self.m, self.v, self.t = (np.array(d["adam_m"], float), np.array(d["adam_v"], float),
-                                  np.array(d["adam_t"], np.int64))
+        self.m, self.v, self.t = (
+            np.array(d["adam_m"], float),
+            np.array(d["adam_v"], float),
+            np.array(d["adam_t"], np.int64),
+        )

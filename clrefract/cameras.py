@@ -107,8 +107,9 @@ def orbit_cameras(
     cams = []
     for k in range(n):
         az = 2.0 * math.pi * k / n
-        eye = radius * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az),
-                                 math.sin(el)])
+        eye = radius * np.array(
+            [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]
+        )
         cams.append(Camera(**intr, c2w=look_at(eye), name=f"orbit_{k:03d}"))
     return cams
 
@@ -131,7 +132,9 @@ def _number(path: Path, where: str, key: str, value, positive: bool = False) -> 
 def _size(path: Path, where: str, key: str, value) -> int:
     v = _number(path, where, key, value, positive=True)
     if v != int(v):
-        raise ClrefractError(f"{path}: {where}'{key}' must be a whole number of pixels, got {value}")
+        raise ClrefractError(
+            f"{path}: {where}'{key}' must be a whole number of pixels, got {value}"
+        )
     return int(v)
 
 

@@ -15,16 +15,26 @@ from .errors import ClrefractError
 
 def _add_engine_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("engine")
-    g.add_argument("--device", default=None,
-                   help="OpenCL device: 'P:D' index, a name substring (default: PYOPENCL_CTX, "
-                        "else the first GPU, else a CPU)")
-    g.add_argument("--step", type=float, default=None,
-                   help="integrator step in mm of optical path (default: what the field needs, "
-                        "at most 0.5)")
+    g.add_argument(
+        "--device",
+        default=None,
+        help="OpenCL device: 'P:D' index, a name substring (default: PYOPENCL_CTX, "
+        "else the first GPU, else a CPU)",
+    )
+    g.add_argument(
+        "--step",
+        type=float,
+        default=None,
+        help="integrator step in mm of optical path (default: what the field needs, at most 0.5)",
+    )
     g.add_argument("--integrator", default="rkn4", choices=["rkn4", "rk4", "euler"])
     g.add_argument("--precision", default="float32", choices=["float32", "float64"])
-    g.add_argument("--lanes", type=int, default=None,
-                   help="rays per work-item (default: 16 on CPUs, 1 on GPUs)")
+    g.add_argument(
+        "--lanes",
+        type=int,
+        default=None,
+        help="rays per work-item (default: 16 on CPUs, 1 on GPUs)",
+    )
     g.add_argument("--max-steps", type=int, default=None, help="step cap per ray")
 
 
@@ -38,16 +48,18 @@ def _cmd_devices(args) -> int:
     print(f"{'id':5} {'type':5} {'CUs':>4} {'memory':>9} {'fp64':5} {'f-atomics':9} device")
     for i in infos:
         mem = f"{i.global_mem_bytes / 2**30:.1f} GiB"
-        print(f"{i.selector:5} {i.kind:5} {i.compute_units:4d} {mem:>9} "
-              f"{'yes' if i.fp64 else 'no':5} {'yes' if i.float_atomics else 'no':9} "
-              f"{i.platform} / {i.name} ({i.version})")
+        print(
+            f"{i.selector:5} {i.kind:5} {i.compute_units:4d} {mem:>9} "
+            f"{'yes' if i.fp64 else 'no':5} {'yes' if i.float_atomics else 'no':9} "
+            f"{i.platform} / {i.name} ({i.version})"
+        )
     return 0
 
 
 def _cmd_render(args) -> int:
     from .cameras import fibonacci_sphere_cameras, load_transforms
     from .envmap import EnvMap
-    from .fields import Box, field_from_spec
+    from .fields import Box
     from .imageio import write_exr_rgb, write_png_srgb
     from .progress import Progress
     from .render import render_camera
@@ -65,11 +77,15 @@ def _cmd_render(args) -> int:
     if args.cameras:
         cameras = load_transforms(Path(args.cameras))
     elif dataset is not None:
-        cameras = {"train": dataset.train, "test": dataset.test,
-                   "all": dataset.train + dataset.test}[args.split]
+        cameras = {
+            "train": dataset.train,
+            "test": dataset.test,
+            "all": dataset.train + dataset.test,
+        }[args.split]
     else:
-        cameras = fibonacci_sphere_cameras(args.views, radius=args.radius, width=args.res,
-                                           height=args.res)
+        cameras = fibonacci_sphere_cameras(
+            args.views, radius=args.radius, width=args.res, height=args.res
+        )
     if args.only is not None:
         bad = [i for i in args.only if not 0 <= i < len(cameras)]
         if bad:
@@ -83,14 +99,23 @@ def _cmd_render(args) -> int:
         envmap = EnvMap.procedural(seed=args.seed)
     runtime = Runtime(args.device)
     args.step = field.suggested_step if args.step is None else args.step
-    tracer = Tracer(field, box, step=args.step, integrator=args.integrator,
-                    precision=args.precision, lanes=args.lanes, max_steps=args.max_steps,
-                    runtime=runtime)
+    tracer = Tracer(
+        field,
+        box,
+        step=args.step,
+        integrator=args.integrator,
+        precision=args.precision,
+        lanes=args.lanes,
+        max_steps=args.max_steps,
+        runtime=runtime,
+    )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    print(f"rendering {len(cameras)} view(s) of {field.kind} on {runtime.info.name} "
-          f"({args.precision}, {tracer.lanes} lanes, {args.integrator}, step {args.step} mm)",
-          file=sys.stderr)
+    print(
+        f"rendering {len(cameras)} view(s) of {field.kind} on {runtime.info.name} "
+        f"({args.precision}, {tracer.lanes} lanes, {args.integrator}, step {args.step} mm)",
+        file=sys.stderr,
+    )
     bar = Progress(len(cameras), "render", unit="views")
     summary = []
     for k, cam in enumerate(cameras):
@@ -102,14 +127,27 @@ def _cmd_render(args) -> int:
         write_png_srgb(out / f"{stem}.png", res.image)
         summary.append({"view": stem, "seconds": dt, "steps": res.steps, **res.status_counts})
         bar.update(1, msteps_per_s=res.steps / dt / 1e6)
-    (out / "render.json").write_text(json.dumps(
-        {"field": field.to_dict(), "device": runtime.info.name, "step": args.step,
-         "integrator": args.integrator, "precision": args.precision, "lanes": tracer.lanes,
-         "views": summary}, indent=2))
+    (out / "render.json").write_text(
+        json.dumps(
+            {
+                "field": field.to_dict(),
+                "device": runtime.info.name,
+                "step": args.step,
+                "integrator": args.integrator,
+                "precision": args.precision,
+                "lanes": tracer.lanes,
+                "views": summary,
+            },
+            indent=2,
+        )
+    )
     trapped = sum(v["trapped"] + v["nonfinite"] for v in summary)
     if trapped:
-        print(f"warning: {trapped} pixel(s) hit the step cap or went non-finite and were "
-              "rendered black; raise --max-steps or lower --step", file=sys.stderr)
+        print(
+            f"warning: {trapped} pixel(s) hit the step cap or went non-finite and were "
+            "rendered black; raise --max-steps or lower --step",
+            file=sys.stderr,
+        )
     print(f"wrote {len(cameras)} view(s) to {out}", file=sys.stderr)
     return 0
 
@@ -135,9 +173,15 @@ def _field_for_render(spec: str, box):
 def _cmd_dataset_make(args) -> int:
     from .synth import MakeOptions, make_dataset
 
-    opt = MakeOptions(views=args.views, res=args.res, test_every=args.test_every,
-                      seed=args.seed, envmap=args.envmap, env_width=args.env_width,
-                      device=args.device)
+    opt = MakeOptions(
+        views=args.views,
+        res=args.res,
+        test_every=args.test_every,
+        seed=args.seed,
+        envmap=args.envmap,
+        env_width=args.env_width,
+        device=args.device,
+    )
     if args.full:
         opt.views, opt.res = 100, 800
     info = make_dataset(args.scene, Path(args.out), opt)
@@ -158,10 +202,28 @@ def _cmd_dataset_check(args) -> int:
 def _cmd_fit(args) -> int:
     from .fit import load_config, run_fit
 
-    overrides = {k: getattr(args, k) for k in (
-        "field", "res", "iterations", "batch", "lr", "lr_table", "lr_mlp", "reg", "step",
-        "queues", "device", "seed", "precision", "levels", "log2_table", "hidden",
-        "test_views")}
+    overrides = {
+        k: getattr(args, k)
+        for k in (
+            "field",
+            "res",
+            "iterations",
+            "batch",
+            "lr",
+            "lr_table",
+            "lr_mlp",
+            "reg",
+            "step",
+            "queues",
+            "device",
+            "seed",
+            "precision",
+            "levels",
+            "log2_table",
+            "hidden",
+            "test_views",
+        )
+    }
     cfg = load_config(Path(args.config) if args.config else None, overrides)
     result = run_fit(Path(args.dataset), Path(args.out), cfg, resume=args.resume)
     print(json.dumps({k: v for k, v in result.items() if k != "views"}, indent=2))
@@ -176,16 +238,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_devices)
 
     p = sub.add_parser("render", help="render a field through curved rays")
-    p.add_argument("--field", default="sphere",
-                   help="analytic spec 'kind:key=value,...' (kinds: luneburg, maxwell, fibre, "
-                        "blobs, sphere, prism, drop), a voxel/hash-grid .npz, a .json, or a "
-                        "fit run folder")
+    p.add_argument(
+        "--field",
+        default="sphere",
+        help="analytic spec 'kind:key=value,...' (kinds: luneburg, maxwell, fibre, "
+        "blobs, sphere, prism, drop), a voxel/hash-grid .npz, a .json, or a "
+        "fit run folder",
+    )
     p.add_argument("--dataset", help="take cameras and environment map from a dataset folder")
-    p.add_argument("--split", default="test", choices=["train", "test", "all"],
-                   help="with --dataset: which views (default test)")
+    p.add_argument(
+        "--split",
+        default="test",
+        choices=["train", "test", "all"],
+        help="with --dataset: which views (default test)",
+    )
     p.add_argument("--cameras", help="NeRF-convention transforms JSON")
-    p.add_argument("--views", type=int, default=8,
-                   help="without --cameras: this many views on a Fibonacci sphere")
+    p.add_argument(
+        "--views",
+        type=int,
+        default=8,
+        help="without --cameras: this many views on a Fibonacci sphere",
+    )
     p.add_argument("--res", type=int, default=128, help="without --cameras: image size")
     p.add_argument("--radius", type=float, default=200.0, help="camera distance in mm")
     p.add_argument("--only", type=int, nargs="+", help="render only these view indices")
@@ -196,10 +269,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_render)
 
     ds = sub.add_parser("dataset", help="make or check datasets").add_subparsers(
-        dest="dataset_command", required=True)
+        dest="dataset_command", required=True
+    )
     p = ds.add_parser("make", help="generate a synthetic benchmark scene")
-    p.add_argument("scene", help="sphere, prism, drop (exact Snell ground truth), "
-                                 "luneburg or plume (graded index)")
+    p.add_argument(
+        "scene",
+        help="sphere, prism, drop (exact Snell ground truth), luneburg or plume (graded index)",
+    )
     p.add_argument("--out", required=True, help="dataset folder to write")
     p.add_argument("--views", type=int, default=100)
     p.add_argument("--res", type=int, default=128, help="image width and height")

@@ -39,10 +39,19 @@ class Scene:
     extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return {"format": FORMAT, "version": 1, "units": "mm", "box": self.box.to_dict(),
-                "eta_range": list(self.eta_range), "object": self.object,
-                "envmap": self.envmap, "train": self.train, "test": self.test,
-                "ground_truth": self.ground_truth, **self.extra}
+        return {
+            "format": FORMAT,
+            "version": 1,
+            "units": "mm",
+            "box": self.box.to_dict(),
+            "eta_range": list(self.eta_range),
+            "object": self.object,
+            "envmap": self.envmap,
+            "train": self.train,
+            "test": self.test,
+            "ground_truth": self.ground_truth,
+            **self.extra,
+        }
 
 
 def write_scene(root: Path, scene: Scene) -> None:
@@ -67,14 +76,28 @@ def read_scene(root: Path) -> Scene:
             raise ValueError(f"eta_range must be [lo, hi] with 1 <= lo < hi, got {eta}")
     except (KeyError, TypeError, ValueError, ClrefractError) as exc:
         raise ClrefractError(f"{path}: bad scene description ({exc})") from None
-    known = {"format", "version", "units", "box", "eta_range", "object", "envmap", "train",
-             "test", "ground_truth"}
-    return Scene(box=box, eta_range=eta, object=d.get("object"),
-                 envmap=d.get("envmap", "envmap.exr"),
-                 train=d.get("train", "transforms_train.json"),
-                 test=d.get("test", "transforms_test.json"),
-                 ground_truth=d.get("ground_truth", {}) or {},
-                 extra={k: v for k, v in d.items() if k not in known})
+    known = {
+        "format",
+        "version",
+        "units",
+        "box",
+        "eta_range",
+        "object",
+        "envmap",
+        "train",
+        "test",
+        "ground_truth",
+    }
+    return Scene(
+        box=box,
+        eta_range=eta,
+        object=d.get("object"),
+        envmap=d.get("envmap", "envmap.exr"),
+        train=d.get("train", "transforms_train.json"),
+        test=d.get("test", "transforms_test.json"),
+        ground_truth=d.get("ground_truth", {}) or {},
+        extra={k: v for k, v in d.items() if k not in known},
+    )
 
 
 def frame_image_path(root: Path, cam: Camera) -> Path:
@@ -104,8 +127,10 @@ class Dataset:
         path = frame_image_path(self.root, cam)
         img = read_exr_rgb(path)
         if img.shape[:2] != (cam.height, cam.width):
-            raise ClrefractError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
-                                 f"camera says {cam.width}x{cam.height}")
+            raise ClrefractError(
+                f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
+                f"camera says {cam.width}x{cam.height}"
+            )
         if not np.isfinite(img).all():
             raise ClrefractError(f"{path}: image has NaN or infinite pixels")
         return img
@@ -164,8 +189,10 @@ def check_dataset(root) -> list[str]:
                 problems.append(str(exc))
                 continue
             if img.shape[:2] != (cam.height, cam.width):
-                problems.append(f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
-                                f"camera says {cam.width}x{cam.height}")
+                problems.append(
+                    f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
+                    f"camera says {cam.width}x{cam.height}"
+                )
             if not np.isfinite(img).all():
                 bad = int((~np.isfinite(img)).any(axis=-1).sum())
                 problems.append(f"{path}: {bad} pixel(s) with non-finite values")

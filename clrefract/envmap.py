@@ -115,7 +115,7 @@ def procedural_image(width: int = 1024, height: int = 512, seed: int = 0) -> np.
     freq = np.repeat(_OCTAVES, _WAVES_PER_OCTAVE) * 2.0 ** rng.uniform(0, 1, n_waves)
     phase = rng.uniform(0, 2 * np.pi, n_waves)
     # Flat-ish spectrum (amplitude ~ f^-0.3) keeps fine detail strong enough to see deflections.
-    colour = rng.normal(size=(n_waves, 3)) * (freq ** -0.3)[:, None]
+    colour = rng.normal(size=(n_waves, 3)) * (freq**-0.3)[:, None]
     norm = np.sqrt(0.5 * (colour**2).sum(axis=0))  # std of the full sum, per channel
     lamp_dir = rng.normal(size=(_N_LAMPS, 3))
     lamp_dir /= np.linalg.norm(lamp_dir, axis=1, keepdims=True)

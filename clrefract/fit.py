@@ -150,9 +150,16 @@ def make_field(cfg: FitConfig, box, eta_max: float, res: int):
         return VoxelGrid(np.ones((res, res, res)), box, interp=cfg.interp, eta_max=eta_max)
     from .fields.hashgrid import HashGridConfig, HashGridField
 
-    hc = HashGridConfig(levels=cfg.levels, features=cfg.features, log2_table=cfg.log2_table,
-                        n_min=cfg.n_min, n_max=cfg.n_max, hidden=cfg.hidden, layers=cfg.layers,
-                        eta_max=eta_max)
+    hc = HashGridConfig(
+        levels=cfg.levels,
+        features=cfg.features,
+        log2_table=cfg.log2_table,
+        n_min=cfg.n_min,
+        n_max=cfg.n_max,
+        hidden=cfg.hidden,
+        layers=cfg.layers,
+        eta_max=eta_max,
+    )
     return HashGridField(hc, box, seed=cfg.seed)
 
 
@@ -170,7 +177,7 @@ class Fit:
         self.eta_max = cfg.eta_max or self.ds.scene.eta_range[1] * 1.05
         self.origins, self.dirs, self.rgb = self.ds.rays_and_pixels("train")
         self._env_full = self.ds.envmap()
-        self._env_cache: dict[float, object] = {}
+        self._env_cache: dict[float, tuple] = {}
         self.it = 0
         self.field = None
         self.engine = None
@@ -186,14 +193,21 @@ class Fit:
 
         self.field = field
         self.params = np.array(field.data(), np.float64)
-        self.engine = GradientEngine(field, self.box, step=self.cfg.step,
-                                     precision=self.cfg.precision, lanes=self.cfg.lanes or None,
-                                     runtime=self.runtime, queues=self.cfg.queues,
-                                     loss_space=self.cfg.loss)
+        self.engine = GradientEngine(
+            field,
+            self.box,
+            step=self.cfg.step,
+            precision=self.cfg.precision,
+            lanes=self.cfg.lanes or None,
+            runtime=self.runtime,
+            queues=self.cfg.queues,
+            loss_space=self.cfg.loss,
+        )
 
     def _groups(self):
-        return self.field.param_groups(lr=self.cfg.lr, lr_table=self.cfg.lr_table,
-                                       lr_mlp=self.cfg.lr_mlp)
+        return self.field.param_groups(
+            lr=self.cfg.lr, lr_table=self.cfg.lr_table, lr_mlp=self.cfg.lr_mlp
+        )
 
     def start(self) -> None:
         res = resolution_at(self.cfg, 0)
@@ -217,12 +231,40 @@ class Fit:
         self.adam.t[:] = t
 
     def env_at(self, it: int):
+        return self._blurred(it)[0]
+
+    def targets_at(self, it: int) -> np.ndarray:
+        return self._blurred(it)[1]
+
+    def _blurred(self, it: int):
+        """Environment and training images blurred alike: sigma pixels of the environment
+        is the same angle in every image (exact where rays go straight), so early
+        iterations compare coarse versions of both and the loss is smooth in eta."""
         sigma = round(blur_at(self.cfg, it), 1)
-        env = self._env_cache.get(sigma)
-        if env is None:
-            env = self._env_full.blurred(sigma) if sigma > 0 else self._env_full
-            self._env_cache = {sigma: env}
-        return env
+        hit = self._env_cache.get(sigma)
+        if hit is None:
+            if sigma <= 0:
+                hit = (self._env_full, self.rgb)
+            else:
+                from scipy.ndimage import gaussian_filter
+
+                env = self._env_full.blurred(sigma)
+                angle = sigma * 2 * np.pi / self._env_full.width
+                imgs = []
+                start = 0
+                for cam in self.ds.train:
+                    n = cam.width * cam.height
+                    px = 2 * math.atan(cam.height / (2 * cam.fl_y)) / cam.height
+                    img = self.rgb[start : start + n].reshape(cam.height, cam.width, 3)
+                    imgs.append(
+                        gaussian_filter(img, (angle / px, angle / px, 0), mode="nearest").reshape(
+                            -1, 3
+                        )
+                    )
+                    start += n
+                hit = (env, np.concatenate(imgs))
+            self._env_cache = {sigma: hit}
+        return hit
 
     # --- checkpoints -----------------------------------------------------------------------
     @property
@@ -232,8 +274,7 @@ class Fit:
     def save_checkpoint(self) -> None:
         shape = np.array(self.field.values.shape if self.cfg.field == "voxel" else [0])
         with atomic_path(self.checkpoint_path, suffix=".npz") as tmp:
-            np.savez(tmp, params=self.params, iteration=self.it, shape=shape,
-                     **self.adam.state())
+            np.savez(tmp, params=self.params, iteration=self.it, shape=shape, **self.adam.state())
 
     def load_checkpoint(self) -> None:
         path = self.checkpoint_path
@@ -248,8 +289,10 @@ class Fit:
         res = int(shape[0]) if self.cfg.field == "voxel" else 0
         self._bind(self._make_field(res) if res else self._make_field(0))
         if len(params) != len(self.params):
-            raise ClrefractError(f"{path}: checkpoint has {len(params)} parameters, the "
-                                 f"configured field has {len(self.params)}")
+            raise ClrefractError(
+                f"{path}: checkpoint has {len(params)} parameters, the "
+                f"configured field has {len(self.params)}"
+            )
         self.params[:] = params
         self.field.set_data(self.params)
         self.engine.tracer.upload_field()
@@ -262,13 +305,16 @@ class Fit:
         self._maybe_regrid()
         idx = batch_indices(self.cfg, self.it, len(self.origins))
         t0 = time.perf_counter()
-        r = self.engine.loss_and_grad(self.origins[idx], self.dirs[idx], self.rgb[idx],
-                                      self.env_at(self.it))
+        targets = self.targets_at(self.it)
+        r = self.engine.loss_and_grad(
+            self.origins[idx], self.dirs[idx], targets[idx], self.env_at(self.it)
+        )
         reg, greg = self.field.regularizer(self.params)
         grad = r.grad + self.cfg.reg * greg
         if not np.all(np.isfinite(grad)):
             raise FloatingPointError("non-finite gradient")
-        self.adam.step(self.params, grad, lr_scale=self.cfg.lr_final ** (self.it / self.cfg.iterations))
+        decay = self.cfg.lr_final ** (self.it / self.cfg.iterations)
+        self.adam.step(self.params, grad, lr_scale=decay)
         if self.cfg.field == "voxel":  # keep node values physical: 1 <= eta <= eta_max
             np.clip(self.params, 1.0, self.eta_max, out=self.params)
         self.field.set_data(self.params)
@@ -276,11 +322,17 @@ class Fit:
         dt = time.perf_counter() - t0
         self.it += 1
         exited = r.status == 0
-        return {"iteration": self.it, "loss": r.loss, "reg": float(reg),
-                "psnr": psnr_linear_batch(r.radiance[exited], self.rgb[idx][exited]),
-                "rays_per_s": len(idx) / dt, "seconds": dt,
-                "drift_mm": float(r.drift.max()), "blur": blur_at(self.cfg, self.it - 1),
-                "res": int(self.field.values.shape[0]) if self.cfg.field == "voxel" else 0}
+        return {
+            "iteration": self.it,
+            "loss": r.loss,
+            "reg": float(reg),
+            "psnr": psnr_linear_batch(r.radiance[exited], targets[idx][exited]),
+            "rays_per_s": len(idx) / dt,
+            "seconds": dt,
+            "drift_mm": float(r.drift.max()),
+            "blur": blur_at(self.cfg, self.it - 1),
+            "res": int(self.field.values.shape[0]) if self.cfg.field == "voxel" else 0,
+        }
 
     def run(self) -> dict:
         metrics_path = self.out / "metrics.jsonl"
@@ -295,12 +347,14 @@ class Fit:
                         self.save_checkpoint()
                         raise ClrefractError(
                             f"interrupted at iteration {self.it}; checkpoint saved in "
-                            f"{self.out}: continue with --resume")
+                            f"{self.out}: continue with --resume"
+                        )
                     m = self.step()
                     mf.write(json.dumps(m) + "\n")
                     mf.flush()
-                    bar.update(1, loss=m["loss"], psnr=round(m["psnr"], 2),
-                               rays_s=int(m["rays_per_s"]))
+                    bar.update(
+                        1, loss=m["loss"], psnr=round(m["psnr"], 2), rays_s=int(m["rays_per_s"])
+                    )
                     if self.it % self.cfg.checkpoint_every == 0:
                         self.save_checkpoint()
                         last_ckpt = self.it
@@ -308,12 +362,14 @@ class Fit:
             # a second Ctrl-C may have cut an update short: keep the last whole checkpoint
             raise ClrefractError(
                 f"interrupted; the checkpoint of iteration {last_ckpt} in {self.out} is "
-                "intact: continue with --resume") from None
+                "intact: continue with --resume"
+            ) from None
         except FloatingPointError as exc:
             raise ClrefractError(
                 f"{exc} at iteration {self.it + 1}; stopped, the last good checkpoint is "
                 f"{self.checkpoint_path} (iteration {last_ckpt}). Try a smaller learning "
-                "rate or step.") from None
+                "rate or step."
+            ) from None
         self.save_checkpoint()
         self.field.save(self.out / "field.npz")
         return self.finish()
@@ -357,22 +413,25 @@ def _truncate_metrics(path: Path, iteration: int) -> None:
     """Drop metric lines past the checkpoint being resumed from."""
     if not path.is_file():
         return
-    keep = [ln for ln in path.read_text().splitlines()
-            if ln.strip() and json.loads(ln)["iteration"] <= iteration]
+    keep = [
+        ln
+        for ln in path.read_text().splitlines()
+        if ln.strip() and json.loads(ln)["iteration"] <= iteration
+    ]
     with atomic_path(path, suffix=".jsonl") as tmp:
         tmp.write_text("".join(ln + "\n" for ln in keep))
 
 
-def run_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False,
-            stream=None) -> dict:
+def run_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stream=None) -> dict:
     out = Path(out)
     if resume:
         if not (out / "config.toml").is_file():
             raise ClrefractError(f"{out}: no run to resume (config.toml missing)")
         cfg = load_config(out / "config.toml", {})
     elif (out / "checkpoint.npz").exists():
-        raise ClrefractError(f"{out} already holds a run: use --resume to continue it, or "
-                             "another --out")
+        raise ClrefractError(
+            f"{out} already holds a run: use --resume to continue it, or another --out"
+        )
     out.mkdir(parents=True, exist_ok=True)
     fit = Fit(dataset, out, cfg, stream=stream)
     if resume:
@@ -380,9 +439,16 @@ def run_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False,
         _truncate_metrics(out / "metrics.jsonl", fit.it)
     else:
         (out / "config.toml").write_text(_toml(cfg))
-        (out / "run.json").write_text(json.dumps({"dataset": str(Path(dataset).resolve()),
-                                                  "box": fit.box.to_dict(),
-                                                  "eta_max": fit.eta_max}, indent=2))
+        (out / "run.json").write_text(
+            json.dumps(
+                {
+                    "dataset": str(Path(dataset).resolve()),
+                    "box": fit.box.to_dict(),
+                    "eta_max": fit.eta_max,
+                },
+                indent=2,
+            )
+        )
         (out / "metrics.jsonl").write_text("")
         fit.start()
     return fit.run()
@@ -401,7 +467,11 @@ def field_from_run(run: Path):
         meta = json.loads((run / "run.json").read_text())
     except Exception as exc:  # noqa: BLE001 - any damage is the user's to know about
         raise ClrefractError(f"{run}: cannot read the run's checkpoint ({exc})") from None
-    field = make_field(cfg, Box.from_dict(meta["box"]), meta["eta_max"],
-                       int(shape[0]) if cfg.field == "voxel" else 0)
+    field = make_field(
+        cfg,
+        Box.from_dict(meta["box"]),
+        meta["eta_max"],
+        int(shape[0]) if cfg.field == "voxel" else 0,
+    )
     field.set_data(params)
     return field

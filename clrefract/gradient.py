@@ -43,16 +43,33 @@ def box_entry(box: Box, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
 class GradientEngine:
     """Photometric loss and its gradient for `field` (its data() are the parameters)."""
 
-    def __init__(self, field: Field, box: Box, step: float = 0.5, precision: str = "float32",
-                 lanes: int | None = None, runtime: Runtime | None = None, queues: int = 1,
-                 max_steps: int | None = None, loss_space: str = "srgb"):
+    def __init__(
+        self,
+        field: Field,
+        box: Box,
+        step: float = 0.5,
+        precision: str = "float32",
+        lanes: int | None = None,
+        runtime: Runtime | None = None,
+        queues: int = 1,
+        max_steps: int | None = None,
+        loss_space: str = "srgb",
+    ):
         self.runtime = runtime or Runtime(queues=queues)
         if len(self.runtime.queues) < queues:
             raise ClrefractError(f"runtime has {len(self.runtime.queues)} queues, need {queues}")
         self.queues = self.runtime.queues[:queues]
-        self.tracer = Tracer(field, box, step=step, integrator="rkn4", precision=precision,
-                             lanes=lanes, max_steps=max_steps, runtime=self.runtime,
-                             adjoint=True)
+        self.tracer = Tracer(
+            field,
+            box,
+            step=step,
+            integrator="rkn4",
+            precision=precision,
+            lanes=lanes,
+            max_steps=max_steps,
+            runtime=self.runtime,
+            adjoint=True,
+        )
         self.field, self.box, self.loss_space = field, box, loss_space
         self._k_adjoint = self.tracer.kernels.adjoint_rays
         self.n_shared = int(getattr(field, "n_shared", 0))
@@ -84,8 +101,9 @@ class GradientEngine:
             q.finish()
         return pending
 
-    def loss_and_grad(self, origins: np.ndarray, dirs: np.ndarray, targets: np.ndarray,
-                      env: EnvMap) -> GradientResult:
+    def loss_and_grad(
+        self, origins: np.ndarray, dirs: np.ndarray, targets: np.ndarray, env: EnvMap
+    ) -> GradientResult:
         tr = self.tracer
         pending = self.forward(origins, dirs)
         n = len(origins)
@@ -98,8 +116,9 @@ class GradientEngine:
             status[idx] = st[:m]
             steps += int(sp[:m].sum())
         exited = status == Status.EXITED
-        loss, mu, rad = photometric_loss(env, vel, targets, weight=exited.astype(float),
-                                         space=self.loss_space)
+        loss, mu, rad = photometric_loss(
+            env, vel, targets, weight=exited.astype(float), space=self.loss_space
+        )
         mu[~exited] = 0.0
 
         n_par = len(self.field.data())
@@ -115,8 +134,16 @@ class GradientEngine:
             items = size // tr.lanes
             partial = np.zeros(max(items * self.n_shared, 1), tr.dtype)
             back = [np.empty(size, tr.dtype) for _ in range(3)]
-            args = [tr.dtype(tr.step), *last, *outs[3:6], sp, *mu_cols, InOut(grad),
-                    Out(partial), *[Out(b) for b in back]]
+            args = [
+                tr.dtype(tr.step),
+                *last,
+                *outs[3:6],
+                sp,
+                *mu_cols,
+                InOut(grad),
+                Out(partial),
+                *[Out(b) for b in back],
+            ]
             tr._enqueue(self._k_adjoint, items, args, q)
             jobs.append((idx, grad, partial, back, items))
         total = np.zeros(n_par)

@@ -26,8 +26,7 @@ def atomic_path(path: PathLike, suffix: str = "") -> Iterator[Path]:
     """
     path = Path(path)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + suffix,
-                                   dir=path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + suffix, dir=path.parent)
     except OSError as e:
         raise ClrefractError(f"{path}: cannot write here ({e.strerror or e})") from None
     os.close(fd)

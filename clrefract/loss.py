@@ -56,8 +56,13 @@ def srgb(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return y, np.where((x < 0) | (x > 1), 0.0, dy)
 
 
-def photometric_loss(env: EnvMap, velocity: np.ndarray, target: np.ndarray,
-                     weight: np.ndarray | None = None, space: str = "srgb"):
+def photometric_loss(
+    env: EnvMap,
+    velocity: np.ndarray,
+    target: np.ndarray,
+    weight: np.ndarray | None = None,
+    space: str = "srgb",
+):
     """Mean squared error over rays and channels, and the terminal adjoint dJ/dv (n, 3).
 
     velocity: exit v (n, 3), not necessarily unit; target: (n, 3) linear radiance;

@@ -13,8 +13,15 @@ def psnr_ssim(rendered: np.ndarray, reference: np.ndarray) -> tuple[float, float
     a = linear_to_srgb(np.asarray(rendered, np.float64)).astype(np.float64)
     b = linear_to_srgb(np.asarray(reference, np.float64)).astype(np.float64)
     psnr = peak_signal_noise_ratio(b, a, data_range=1.0)
-    ssim = structural_similarity(b, a, data_range=1.0, channel_axis=-1, gaussian_weights=True,
-                                 sigma=1.5, use_sample_covariance=False)
+    ssim = structural_similarity(
+        b,
+        a,
+        data_range=1.0,
+        channel_axis=-1,
+        gaussian_weights=True,
+        sigma=1.5,
+        use_sample_covariance=False,
+    )
     return float(psnr), float(ssim)
 
 

@@ -18,8 +18,9 @@ class RenderResult:
     steps: int  # integration steps taken over all pixels
 
 
-def render_camera(tracer: Tracer, camera: Camera, envmap: EnvMap,
-                  chunk: int = 1 << 18) -> RenderResult:
+def render_camera(
+    tracer: Tracer, camera: Camera, envmap: EnvMap, chunk: int = 1 << 18
+) -> RenderResult:
     """One ray through each pixel centre; trapped or non-finite rays render black."""
     origins, dirs = camera.rays()
     out = np.empty((len(origins), 3), np.float32)

@@ -44,11 +44,11 @@ def eta_slices(field, box, res: int = 128):
     lo, hi = np.asarray(box.lo), np.asarray(box.hi)
     c = (lo + hi) / 2
     out = []
-    for a, b, k in ((0, 1, 2), (0, 2, 1), (1, 2, 0)):
+    for a, b in ((0, 1), (0, 2), (1, 2)):
         u = np.linspace(lo[a], hi[a], res)
         v = np.linspace(lo[b], hi[b], res)
         U, V = np.meshgrid(u, v, indexing="xy")
-        pts = np.tile(c, (U.size, 1))
+        pts = np.tile(c, (U.size, 1))  # the third coordinate stays at the centre
         pts[:, a], pts[:, b] = U.ravel(), V.ravel()
         out.append(field.eval(pts)[0].reshape(res, res))
     return out
@@ -64,8 +64,7 @@ def plot_slices(field, box, out_png: Path, truth=None, vmax: float | None = None
     ext = [box.lo[0], box.hi[0], box.lo[1], box.hi[1]]
     for r, (name, sl) in enumerate(rows):
         for k, (s, title) in enumerate(zip(sl, ("xy (z=0)", "xz (y=0)", "yz (x=0)"))):
-            im = ax[r, k].imshow(s, origin="lower", extent=ext, vmin=1.0, vmax=vmax,
-                                 cmap="viridis")
+            im = ax[r, k].imshow(s, origin="lower", extent=ext, vmin=1.0, vmax=vmax, cmap="viridis")
             ax[r, k].set_title(f"{name}: eta, {title}")
     fig.colorbar(im, ax=ax, shrink=0.8, label="eta")
     with atomic_path(out_png, suffix=".png") as tmp:
@@ -79,8 +78,14 @@ def render_test_views(fit, out_dir: Path, limit: int = -1) -> list[dict]:
     from .tracer import Tracer
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    tracer = Tracer(fit.field, fit.box, step=fit.cfg.step, precision=fit.cfg.precision,
-                    lanes=fit.cfg.lanes or None, runtime=fit.runtime)
+    tracer = Tracer(
+        fit.field,
+        fit.box,
+        step=fit.cfg.step,
+        precision=fit.cfg.precision,
+        lanes=fit.cfg.lanes or None,
+        runtime=fit.runtime,
+    )
     env = fit.ds.envmap()
     cams = fit.ds.test if limit < 0 else fit.ds.test[:limit]
     rows = []
@@ -121,10 +126,11 @@ def write_fit_report(fit) -> dict:
         from .fields.base import Box
 
         box: Box = fit.box
-        g = np.stack(np.meshgrid(*[np.linspace(box.lo[k], box.hi[k], 48) for k in range(3)],
-                                 indexing="ij"), -1).reshape(-1, 3)
-        result["eta_rmse"] = float(np.sqrt(np.mean((fit.field.eval(g)[0] - truth.eval(g)[0])
-                                                   ** 2)))
+        g = np.stack(
+            np.meshgrid(*[np.linspace(box.lo[k], box.hi[k], 48) for k in range(3)], indexing="ij"),
+            -1,
+        ).reshape(-1, 3)
+        result["eta_rmse"] = float(np.sqrt(np.mean((fit.field.eval(g)[0] - truth.eval(g)[0]) ** 2)))
     with atomic_path(out / "results.json", suffix=".json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))
     return result

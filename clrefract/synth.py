@@ -42,8 +42,11 @@ def scene_object(name: str):
         # a rising hot-gas plume: blobs stacked along z, eta - 1 around 1e-3
         z = np.linspace(-25, 25, 6)
         centers = np.column_stack([3 * np.sin(z / 9), 2 * np.cos(z / 7), z])
-        return Blobs(centers=centers.tolist(), amplitudes=(1e-3 * np.linspace(1.2, 0.6, 6))
-                     .tolist(), sigmas=np.linspace(6, 11, 6).tolist())
+        return Blobs(
+            centers=centers.tolist(),
+            amplitudes=(1e-3 * np.linspace(1.2, 0.6, 6)).tolist(),
+            sigmas=np.linspace(6, 11, 6).tolist(),
+        )
     raise ClrefractError(f"unknown scene {name!r}; scenes are {', '.join(SCENES)}")
 
 
@@ -75,8 +78,15 @@ def _ray_renderer(name: str, obj, box: Box, runtime):
         return trace
     from .tracer import Status, Tracer
 
-    tracer = Tracer(obj, box, step=0.05, integrator="rkn4", precision="float64",
-                    runtime=runtime, max_steps=20000)
+    tracer = Tracer(
+        obj,
+        box,
+        step=0.05,
+        integrator="rkn4",
+        precision="float64",
+        runtime=runtime,
+        max_steps=20000,
+    )
 
     def trace(o, d):
         r = tracer.trace(o, d)
@@ -87,10 +97,12 @@ def _ray_renderer(name: str, obj, box: Box, runtime):
 
 def write_ply(path: Path, verts: np.ndarray, faces: np.ndarray) -> None:
     """Binary little-endian PLY triangle mesh."""
-    header = (f"ply\nformat binary_little_endian 1.0\ncomment clrefract ground truth, mm\n"
-              f"element vertex {len(verts)}\nproperty float x\nproperty float y\n"
-              f"property float z\nelement face {len(faces)}\n"
-              "property list uchar int vertex_indices\nend_header\n")
+    header = (
+        f"ply\nformat binary_little_endian 1.0\ncomment clrefract ground truth, mm\n"
+        f"element vertex {len(verts)}\nproperty float x\nproperty float y\n"
+        f"property float z\nelement face {len(faces)}\n"
+        "property list uchar int vertex_indices\nend_header\n"
+    )
     f = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     f["n"], f["i"] = 3, faces
     with atomic_path(path, suffix=".ply") as tmp, open(tmp, "wb") as fh:
@@ -142,14 +154,18 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) 
     (out / "test").mkdir(parents=True, exist_ok=True)
     if opt.views < 2 or opt.res < 4 or opt.test_every < 2:
         raise ClrefractError("need at least 2 views, 4 pixels and --test-every >= 2")
-    env = (EnvMap.from_exr(opt.envmap) if opt.envmap
-           else EnvMap.procedural(opt.env_width, opt.env_width // 2, seed=opt.seed))
+    env = (
+        EnvMap.from_exr(opt.envmap)
+        if opt.envmap
+        else EnvMap.procedural(opt.env_width, opt.env_width // 2, seed=opt.seed)
+    )
     env.save(out / "envmap.exr")
     write_png_srgb(out / "envmap.png", env.image)
     runtime = Runtime(opt.device)
     trace = _ray_renderer(name if name in SCENES else "graded", obj, box, runtime)
-    cams = fibonacci_sphere_cameras(opt.views, radius=opt.radius, width=opt.res,
-                                    height=opt.res, fov_y_deg=opt.fov_y)
+    cams = fibonacci_sphere_cameras(
+        opt.views, radius=opt.radius, width=opt.res, height=opt.res, fov_y_deg=opt.fov_y
+    )
     train, test = [], []
     bar = Progress(opt.views, f"dataset {name}", unit="views", stream=stream)
     bad_total = 0
@@ -174,11 +190,30 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) 
     verts, faces = surface_mesh(obj)
     write_ply(out / "gt_surface.ply", verts, faces)
     eta_hi = float(obj.eta_max)
-    scene = Scene(box=box, eta_range=(1.0, eta_hi), object=obj.to_dict(),
-                  ground_truth={"eta_volume": "gt_eta.npz", "surface": "gt_surface.ply",
-                                "renderer": "snell" if name in SOLIDS else "eikonal-f64"},
-                  extra={"name": name, "seed": opt.seed, "views": opt.views, "res": opt.res,
-                         "test_every": opt.test_every, "untraced_pixels": bad_total})
+    scene = Scene(
+        box=box,
+        eta_range=(1.0, eta_hi),
+        object=obj.to_dict(),
+        ground_truth={
+            "eta_volume": "gt_eta.npz",
+            "surface": "gt_surface.ply",
+            "renderer": "snell" if name in SOLIDS else "eikonal-f64",
+        },
+        extra={
+            "name": name,
+            "seed": opt.seed,
+            "views": opt.views,
+            "res": opt.res,
+            "test_every": opt.test_every,
+            "untraced_pixels": bad_total,
+        },
+    )
     write_scene(out, scene)
-    return {"scene": name, "views": opt.views, "res": opt.res, "seconds_views": t_views,
-            "seconds_total": time.perf_counter() - t_start, "untraced_pixels": bad_total}
+    return {
+        "scene": name,
+        "views": opt.views,
+        "res": opt.res,
+        "seconds_views": t_views,
+        "seconds_total": time.perf_counter() - t_start,
+        "untraced_pixels": bad_total,
+    }

@@ -103,10 +103,16 @@ class Tracer:
         cl = self.runtime.cl
         mf = cl.mem_flags
         ctx = self.runtime.context
-        self._fp = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self._real(
-            np.append(self.field.params(), 0.0)))
-        self._fd = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self._real(
-            np.append(self.field.data(), 0.0)))
+        self._fp = cl.Buffer(
+            ctx,
+            mf.READ_ONLY | mf.COPY_HOST_PTR,
+            hostbuf=self._real(np.append(self.field.params(), 0.0)),
+        )
+        self._fd = cl.Buffer(
+            ctx,
+            mf.READ_ONLY | mf.COPY_HOST_PTR,
+            hostbuf=self._real(np.append(self.field.data(), 0.0)),
+        )
 
     def _real(self, a) -> np.ndarray:
         return np.ascontiguousarray(a, dtype=self.dtype)

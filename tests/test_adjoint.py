@@ -18,8 +18,14 @@ def smooth_env():
     """A smooth analytic environment at high resolution: the loss is smooth enough for
     finite differences (bilinear texel kinks are far below the FD perturbation)."""
     d = pixel_directions(2048, 1024)
-    img = np.stack([1 + 0.5 * np.sin(3 * d[..., 0] + 1) * np.cos(2 * d[..., 2]),
-                    1 + 0.5 * np.cos(4 * d[..., 1]), 1 + 0.3 * d[..., 2]], -1)
+    img = np.stack(
+        [
+            1 + 0.5 * np.sin(3 * d[..., 0] + 1) * np.cos(2 * d[..., 2]),
+            1 + 0.5 * np.cos(4 * d[..., 1]),
+            1 + 0.3 * d[..., 2],
+        ],
+        -1,
+    )
     return EnvMap(img * 0.4)
 
 
@@ -86,8 +92,9 @@ def test_gradient_does_not_depend_on_the_number_of_queues():
     grads = []
     for q in (1, 3):
         rt = Runtime(queues=q)
-        eng = GradientEngine(VoxelGrid(vals, BOX), BOX, step=1.0, precision="float64",
-                             runtime=rt, queues=q)
+        eng = GradientEngine(
+            VoxelGrid(vals, BOX), BOX, step=1.0, precision="float64", runtime=rt, queues=q
+        )
         r = eng.loss_and_grad(o, d, target, env)
         grads.append(r.grad)
     assert np.abs(grads[0] - grads[1]).max() < 1e-12 * np.abs(grads[0]).max()
@@ -103,8 +110,11 @@ def test_device_buffers_do_not_grow_with_the_step_count(precision, monkeypatch):
 
     def spy(ctx, flags, size=0, hostbuf=None):
         sizes.append(hostbuf.nbytes if hostbuf is not None else size)
-        return real(ctx, flags, size, hostbuf) if hostbuf is None else real(ctx, flags,
-                                                                           hostbuf=hostbuf)
+        return (
+            real(ctx, flags, size, hostbuf)
+            if hostbuf is None
+            else real(ctx, flags, hostbuf=hostbuf)
+        )
 
     vals, o, d, env, target = voxel_scene(n_rays=200)
     totals = []

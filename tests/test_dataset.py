@@ -19,8 +19,7 @@ from clrefract.tracer import Tracer
 @pytest.fixture(scope="module")
 def sphere_ds(tmp_path_factory):
     out = tmp_path_factory.mktemp("sphere")
-    info = make_dataset("sphere", out, MakeOptions(views=10, res=24, env_width=256,
-                                                   volume_res=16))
+    info = make_dataset("sphere", out, MakeOptions(views=10, res=24, env_width=256, volume_res=16))
     return out, info
 
 
@@ -106,15 +105,16 @@ def test_dataset_check_cli_exit_codes(sphere_ds, tmp_path, capsys):
 def test_render_accepts_a_dataset(sphere_ds, tmp_path):
     root, _ = sphere_ds
     out = tmp_path / "r"
-    assert main(["render", "--dataset", str(root), "--field", "sphere:width=0.5",
-                 "--out", str(out)]) == 0
+    assert (
+        main(["render", "--dataset", str(root), "--field", "sphere:width=0.5", "--out", str(out)])
+        == 0
+    )
     assert sorted(p.name for p in out.glob("*.exr")) == ["r_000.exr", "r_005.exr"]
 
 
 @pytest.mark.parametrize("name", ["prism", "drop"])
 def test_other_solids_generate_and_check(name, tmp_path):
-    info = make_dataset(name, tmp_path, MakeOptions(views=5, res=16, env_width=128,
-                                                    volume_res=12))
+    info = make_dataset(name, tmp_path, MakeOptions(views=5, res=16, env_width=128, volume_res=12))
     assert info["views"] == 5 and check_dataset(tmp_path) == []
 
 
@@ -126,8 +126,11 @@ def _eikonal_exit_error(width, step):
     o = np.column_stack([b * np.cos(phi), b * np.sin(phi), np.full(300, -120.0)])
     d = np.tile([0.0, 0.0, 1.0], (300, 1))
     exact = SnellRenderer(Sphere(radius=20.0, eta=1.5)).trace(o, d).direction
-    eik = Tracer(Sphere(radius=20.0, eta=1.5, width=width), step=step,
-                 precision="float64").trace(o, d).direction
+    eik = (
+        Tracer(Sphere(radius=20.0, eta=1.5, width=width), step=step, precision="float64")
+        .trace(o, d)
+        .direction
+    )
     return float(np.arccos(np.clip((exact * eik).sum(1), -1, 1)).max())
 
 

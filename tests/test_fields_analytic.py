@@ -22,8 +22,9 @@ def _points(n=4000, seed=0):
 
 
 @pytest.mark.parametrize("field", FIELDS, ids=lambda f: f.kind)
-@pytest.mark.parametrize("precision,lanes,tol", [("float64", 8, 1e-12), ("float32", 16, 3e-5),
-                                                 ("float32", 1, 3e-5)])
+@pytest.mark.parametrize(
+    "precision,lanes,tol", [("float64", 8, 1e-12), ("float32", 16, 3e-5), ("float32", 1, 3e-5)]
+)
 def test_kernel_matches_numpy_reference(field, precision, lanes, tol):
     pts = _points()
     eta, grad = Tracer(field, precision=precision, lanes=lanes).eval_field(pts)

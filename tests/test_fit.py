@@ -17,14 +17,23 @@ from clrefract.synth import MakeOptions, make_dataset
 def blob_dataset(tmp_path_factory):
     out = tmp_path_factory.mktemp("blob")
     blob = Blobs(centers=[[0, 0, 0], [8, -5, 6]], amplitudes=[0.05, 0.03], sigmas=[12, 8])
-    make_dataset("blob", out, MakeOptions(views=12, res=32, env_width=512, volume_res=24),
-                 obj=blob)
+    make_dataset("blob", out, MakeOptions(views=12, res=32, env_width=512, volume_res=24), obj=blob)
     return out
 
 
 def _cfg(**kw):
-    base = dict(iterations=40, batch=4096, res=12, res_schedule=(8,), step=2.0, lr=0.003,
-                env_blur=0.0, checkpoint_every=10, test_views=1, precision="float64")
+    base = dict(
+        iterations=40,
+        batch=4096,
+        res=12,
+        res_schedule=(8,),
+        step=2.0,
+        lr=0.003,
+        env_blur=0.0,
+        checkpoint_every=10,
+        test_views=1,
+        precision="float64",
+    )
     base.update(kw)
     return load_config(None, base)
 
@@ -37,8 +46,14 @@ def test_tiny_fit_cuts_the_loss(blob_dataset, tmp_path):
     res = run_fit(blob_dataset, tmp_path / "run", _cfg())
     losses = _losses(tmp_path / "run")
     assert np.mean(losses[-5:]) < np.mean(losses[:3]) / 3, losses
-    for name in ("config.toml", "checkpoint.npz", "field.npz", "loss.png", "slices.png",
-                 "results.json"):
+    for name in (
+        "config.toml",
+        "checkpoint.npz",
+        "field.npz",
+        "loss.png",
+        "slices.png",
+        "results.json",
+    ):
         assert (tmp_path / "run" / name).is_file(), name
     # against doing nothing (eta = 1 everywhere): eta error halved, test views sharper
     blob = Blobs(centers=[[0, 0, 0], [8, -5, 6]], amplitudes=[0.05, 0.03], sigmas=[12, 8])
@@ -99,12 +114,40 @@ def test_non_finite_gradient_stops_with_a_clear_message(blob_dataset, tmp_path, 
 
 def test_fit_cli_refuses_to_overwrite_and_renders_the_run(blob_dataset, tmp_path, capsys):
     run = tmp_path / "cli"
-    args = ["fit", str(blob_dataset), "--out", str(run), "--iterations", "4", "--res", "8",
-            "--step", "2", "--test-views", "1"]
+    args = [
+        "fit",
+        str(blob_dataset),
+        "--out",
+        str(run),
+        "--iterations",
+        "4",
+        "--res",
+        "8",
+        "--step",
+        "2",
+        "--test-views",
+        "1",
+    ]
     assert main(args) == 0
     assert main(args) == 2
     assert "already holds a run" in capsys.readouterr().err
     out = tmp_path / "renders"
-    assert main(["render", "--field", str(run), "--dataset", str(blob_dataset), "--out",
-                 str(out), "--only", "0", "--step", "2"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "--field",
+                str(run),
+                "--dataset",
+                str(blob_dataset),
+                "--out",
+                str(out),
+                "--only",
+                "0",
+                "--step",
+                "2",
+            ]
+        )
+        == 0
+    )
     assert len(list(out.glob("*.exr"))) == 1

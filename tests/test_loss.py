@@ -41,7 +41,9 @@ def test_loss_gradient_matches_fd_along_random_directions(space):
     hits = 0
     for _ in range(10):
         u = rng.normal(size=v.shape) * 1e-7
-        fd = (photometric_loss(env, v + u, target, space=space)[0]
-              - photometric_loss(env, v - u, target, space=space)[0])
+        fd = (
+            photometric_loss(env, v + u, target, space=space)[0]
+            - photometric_loss(env, v - u, target, space=space)[0]
+        )
         hits += abs(fd / 2 - (g * u).sum()) < 1e-3 * abs((g * u).sum()) + 1e-15
     assert hits >= 9

@@ -49,8 +49,11 @@ def test_non_positive_step_is_refused(step):
 def test_build_failure_reports_the_compiler_log():
     rt = default_runtime()
     with pytest.raises(ClrefractError, match="no FIELD_\\* kind defined"):
-        rt.build(["common.h", "field_analytic.cl", "trace.cl"],
-                 {**Box().defines(), "INTEGRATOR_RKN4": 1}, "float32")
+        rt.build(
+            ["common.h", "field_analytic.cl", "trace.cl"],
+            {**Box().defines(), "INTEGRATOR_RKN4": 1},
+            "float32",
+        )
 
 
 def test_programs_are_built_once_and_kernels_reused():

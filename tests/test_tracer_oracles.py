@@ -26,8 +26,9 @@ def _luneburg_starts(n, seed=0):
 def _luneburg_error(integrator, n_steps, precision="float64"):
     p, d = _luneburg_starts(64)
     sigma = np.pi * R / 2
-    tr = Tracer(Luneburg(radius=R), step=sigma / n_steps, integrator=integrator,
-                precision=precision)
+    tr = Tracer(
+        Luneburg(radius=R), step=sigma / n_steps, integrator=integrator, precision=precision
+    )
     x, v = tr.propagate(p * (1 - 1e-12), d, n_steps)
     # leaves at R d with velocity -P / R
     return max(np.abs(x - R * d).max(), R * np.abs(v + p / R).max())
@@ -125,8 +126,14 @@ def test_random_blob_field_matches_dop853_in_float64():
     sigma, n = 60.0, 300
     x, v = Tracer(f, step=sigma / n, precision="float64").propagate(x0, v0, n)
     for i in range(len(x0)):
-        sol = solve_ivp(_blob_rhs(f), (0, sigma), np.concatenate([x0[i], v0[i]]),
-                        method="DOP853", rtol=1e-11, atol=1e-12)
+        sol = solve_ivp(
+            _blob_rhs(f),
+            (0, sigma),
+            np.concatenate([x0[i], v0[i]]),
+            method="DOP853",
+            rtol=1e-11,
+            atol=1e-12,
+        )
         ref = sol.y[:, -1]
         assert np.abs(x[i] - ref[:3]).max() < 1e-6
         assert np.abs(v[i] - ref[3:]).max() < 1e-7

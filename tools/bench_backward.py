@@ -64,9 +64,18 @@ def run_clrefract(n_rays: int, step: float, repeats: int, q) -> None:
         tot = min(tot, time.perf_counter() - t0)
         steps = r.steps
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    q.put({"engine": "clrefract adjoint", "step": step, "steps_per_ray": steps / n_rays,
-           "forward_s": fwd, "backward_s": tot - fwd, "ratio": (tot - fwd) / fwd,
-           "peak_rss_mib": peak / 1024, "rss_growth_mib": (peak - base) / 1024})
+    q.put(
+        {
+            "engine": "clrefract adjoint",
+            "step": step,
+            "steps_per_ray": steps / n_rays,
+            "forward_s": fwd,
+            "backward_s": tot - fwd,
+            "ratio": (tot - fwd) / fwd,
+            "peak_rss_mib": peak / 1024,
+            "rss_growth_mib": (peak - base) / 1024,
+        }
+    )
 
 
 def run_torch(n_rays: int, step: float, repeats: int, q) -> None:
@@ -120,8 +129,9 @@ def run_torch(n_rays: int, step: float, repeats: int, q) -> None:
         uu = torch.atan2(dd[:, 1], dd[:, 0]) / torch.pi
         vv = 2 * torch.acos(dd[:, 2].clamp(-1, 1)) / torch.pi - 1
         grid = torch.stack([uu, vv], 1)[None, None]
-        rad = torch.nn.functional.grid_sample(img, grid, align_corners=False,
-                                              padding_mode="border")[0, :, 0].T
+        rad = torch.nn.functional.grid_sample(
+            img, grid, align_corners=False, padding_mode="border"
+        )[0, :, 0].T
         return ((rad - target) ** 2).mean()
 
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -136,9 +146,18 @@ def run_torch(n_rays: int, step: float, repeats: int, q) -> None:
         forward().backward()
         tot = min(tot, time.perf_counter() - t0)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    q.put({"engine": "PyTorch autograd", "step": step, "steps_per_ray": n_steps,
-           "forward_s": fwd, "backward_s": tot - fwd, "ratio": (tot - fwd) / fwd,
-           "peak_rss_mib": peak / 1024, "rss_growth_mib": (peak - base) / 1024})
+    q.put(
+        {
+            "engine": "PyTorch autograd",
+            "step": step,
+            "steps_per_ray": n_steps,
+            "forward_s": fwd,
+            "backward_s": tot - fwd,
+            "ratio": (tot - fwd) / fwd,
+            "peak_rss_mib": peak / 1024,
+            "rss_growth_mib": (peak - base) / 1024,
+        }
+    )
 
 
 def in_process(fn, *args) -> dict:
@@ -168,13 +187,22 @@ def main() -> None:
                 rows.append(in_process(run_torch, args.rays, h, args.repeats))
             except ImportError:
                 print("(PyTorch not installed: pip install torch)", file=sys.stderr)
-    cols = ["engine", "step", "steps_per_ray", "forward_s", "backward_s", "ratio",
-            "peak_rss_mib", "rss_growth_mib"]
+    cols = [
+        "engine",
+        "step",
+        "steps_per_ray",
+        "forward_s",
+        "backward_s",
+        "ratio",
+        "peak_rss_mib",
+        "rss_growth_mib",
+    ]
     print(f"Backward pass, {args.rays} rays, voxel grid {RES}^3 smoothstep, float32:")
     print("  ".join(f"{c:>17}" for c in cols))
     for r in rows:
-        print("  ".join(f"{r[c]:>17.4g}" if isinstance(r[c], float) else f"{r[c]:>17}"
-                        for c in cols))
+        print(
+            "  ".join(f"{r[c]:>17.4g}" if isinstance(r[c], float) else f"{r[c]:>17}" for c in cols)
+        )
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"rays": args.rays, "rows": rows}, indent=2))

@@ -47,14 +47,20 @@ def best_of(fn, repeats: int):
 def bench_fields(n: int, step: float, repeats: int) -> list[dict]:
     o, d = workload(n)
     blobs = Blobs.random(4, amplitude=0.1, seed=3)
-    fields = [("blobs", blobs), ("luneburg", Luneburg(radius=20.0)), ("sphere", Sphere()),
-              ("prism", Prism()), ("drop", Drop())]
+    fields = [
+        ("blobs", blobs),
+        ("luneburg", Luneburg(radius=20.0)),
+        ("sphere", Sphere()),
+        ("prism", Prism()),
+        ("drop", Drop()),
+    ]
     try:
         from clrefract.fields.voxel import VoxelGrid
 
         for interp in ("trilinear", "smoothstep"):
-            fields.append((f"voxel-128-{interp}",
-                           VoxelGrid.from_field(Sphere(width=4.0), BOX, 128, interp)))
+            fields.append(
+                (f"voxel-128-{interp}", VoxelGrid.from_field(Sphere(width=4.0), BOX, 128, interp))
+            )
     except ImportError:
         pass
     try:
@@ -74,23 +80,48 @@ def bench_fields(n: int, step: float, repeats: int) -> list[dict]:
             tr.trace(o[:256], d[:256])
             sec, res = best_of(lambda: tr.trace(o[:m], d[:m]), repeats)  # noqa: B023
             steps = int(res.steps.sum())
-            rows.append({"engine": f"clrefract ({dev}, {lanes} lanes)", "field": name,
-                         "rays": m, "steps": steps, "seconds": sec,
-                         "steps_per_s": steps / sec})
+            rows.append(
+                {
+                    "engine": f"clrefract ({dev}, {lanes} lanes)",
+                    "field": name,
+                    "rays": m,
+                    "steps": steps,
+                    "seconds": sec,
+                    "steps_per_s": steps / sec,
+                }
+            )
     try:
         from drjit_peer import drjit_trace_blobs
     except ImportError as exc:
         print(f"(Dr.Jit peer unavailable: {exc})", file=sys.stderr)
         return rows
-    args = (o, d, np.asarray(blobs.centers), np.asarray(blobs.amplitudes),
-            np.asarray(blobs.sigmas), BOX.lo, BOX.hi, step, 4 * 174 * int(1 / step + 1))
+    args = (
+        o,
+        d,
+        np.asarray(blobs.centers),
+        np.asarray(blobs.amplitudes),
+        np.asarray(blobs.sigmas),
+        BOX.lo,
+        BOX.hi,
+        step,
+        4 * 174 * int(1 / step + 1),
+    )
     drjit_trace_blobs(*args)  # JIT warm-up
     sec, res = best_of(lambda: drjit_trace_blobs(*args), repeats)
     steps = int(np.sum(res["steps"]))
     ref = Tracer(blobs, BOX, step=step, precision="float64", lanes=8).trace(o, d)
     err = float(np.abs(res["direction"] - ref.direction).max())
-    rows.append({"engine": "Dr.Jit LLVM (peer)", "field": "blobs", "rays": n, "steps": steps,
-                 "seconds": sec, "steps_per_s": steps / sec, "max_dir_diff_vs_f64": err})
+    rows.append(
+        {
+            "engine": "Dr.Jit LLVM (peer)",
+            "field": "blobs",
+            "rays": n,
+            "steps": steps,
+            "seconds": sec,
+            "steps_per_s": steps / sec,
+            "max_dir_diff_vs_f64": err,
+        }
+    )
     return rows
 
 
@@ -112,15 +143,28 @@ def bench_tradeoff(n: int, repeats: int) -> list[dict]:
     for precision in ("float32", "float64"):
         for integrator in ("rkn4", "rk4", "euler"):
             for step in (2.0, 1.0, 0.5, 0.25, 0.125, 0.0625):
-                tr = Tracer(Luneburg(radius=radius), BOX, step=step, integrator=integrator,
-                            precision=precision)
+                tr = Tracer(
+                    Luneburg(radius=radius),
+                    BOX,
+                    step=step,
+                    integrator=integrator,
+                    precision=precision,
+                )
                 tr.trace(o[:64], d[:64])
                 sec, res = best_of(lambda: tr.trace(o, d), repeats)  # noqa: B023
                 cosang = np.clip((res.direction * exact).sum(1), -1, 1)
                 err = np.degrees(np.arccos(cosang))
-                rows.append({"precision": precision, "integrator": integrator, "step": step,
-                             "max_err_deg": float(err.max()), "mean_err_deg": float(err.mean()),
-                             "seconds": sec, "rays_per_s": len(o) / sec})
+                rows.append(
+                    {
+                        "precision": precision,
+                        "integrator": integrator,
+                        "step": step,
+                        "max_err_deg": float(err.max()),
+                        "mean_err_deg": float(err.mean()),
+                        "seconds": sec,
+                        "rays_per_s": len(o) / sec,
+                    }
+                )
     return rows
 
 
@@ -149,16 +193,21 @@ def main() -> None:
     print(f"device: {info.platform} / {info.name}\n")
     fields = bench_fields(args.rays, args.step, args.repeats)
     print(f"Throughput, step {args.step} mm, RKN4 float32 (ray-steps per second):")
-    print_table(fields, ["engine", "field", "rays", "steps", "seconds", "steps_per_s",
-                         "max_dir_diff_vs_f64"])
+    print_table(
+        fields,
+        ["engine", "field", "rays", "steps", "seconds", "steps_per_s", "max_dir_diff_vs_f64"],
+    )
     trade = bench_tradeoff(args.tradeoff_rays, args.repeats)
     print("\nSpeed/accuracy on the Luneburg lens (exit direction vs closed form):")
-    print_table(trade, ["precision", "integrator", "step", "max_err_deg", "mean_err_deg",
-                        "seconds", "rays_per_s"])
+    print_table(
+        trade,
+        ["precision", "integrator", "step", "max_err_deg", "mean_err_deg", "seconds", "rays_per_s"],
+    )
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"device": info.name, "throughput": fields, "tradeoff": trade},
-                              indent=2))
+    out.write_text(
+        json.dumps({"device": info.name, "throughput": fields, "tradeoff": trade}, indent=2)
+    )
     print(f"\nwrote {out}")
 
 

@@ -23,8 +23,12 @@ def field_from_dict(d: dict) -> Field:
             "or give a voxel/hash-grid .npz file"
         )
     try:
-        return cls(**{k: tuple(v) if isinstance(v, list) and k in ("center", "tilt") else v
-                      for k, v in d.items()})
+        return cls(
+            **{
+                k: tuple(v) if isinstance(v, list) and k in ("center", "tilt") else v
+                for k, v in d.items()
+            }
+        )
     except TypeError as exc:
         raise ClrefractError(f"bad parameters for field {kind!r}: {exc}") from None
 

@@ -98,7 +98,7 @@ class Fibre(AnalyticField):
         p = pts[:, :2] - np.asarray(self.center)
         q = np.maximum(1 - self.a**2 * (p * p).sum(1), 1e-12)
         eta = self.n0 * np.sqrt(q)
-        k = -self.n0**2 * self.a**2 / eta
+        k = -(self.n0**2) * self.a**2 / eta
         grad = np.zeros_like(pts)
         grad[:, :2] = k[:, None] * p
         return eta, grad
@@ -239,8 +239,14 @@ class Prism(SmoothSolid):
 
     def params(self):
         return np.array(
-            [*self.center, *self.world_to_local.ravel(), self.side, self.length, self.eta,
-             self.width],
+            [
+                *self.center,
+                *self.world_to_local.ravel(),
+                self.side,
+                self.length,
+                self.eta,
+                self.width,
+            ],
             float,
         )
 
@@ -249,9 +255,7 @@ class Prism(SmoothSolid):
         loc = (pts - np.asarray(self.center)) @ m.T
         rin = self.side / (2 * np.sqrt(3))
         normals = np.array([[0, 1, 0], [-_C30, -0.5, 0], [_C30, -0.5, 0]], float)
-        d = np.column_stack(
-            [loc @ normals.T - rin, np.abs(loc[:, 2]) - 0.5 * self.length]
-        )
+        d = np.column_stack([loc @ normals.T - rin, np.abs(loc[:, 2]) - 0.5 * self.length])
         k = np.argmax(d, axis=1)
         n_loc = np.zeros_like(loc)
         for j in range(3):
