@@ -98,6 +98,7 @@ _OCTAVES = 2.0 ** np.arange(1, 12)  # 2 .. 2048
 _WAVES_PER_OCTAVE = 10
 _MIN_WAVELENGTH_PX = 5.0
 _N_LAMPS = 5
+_MIN_LINE_SPACING_PX = 24.0
 
 
 def procedural_image(width: int = 1024, height: int = 512, seed: int = 0) -> np.ndarray:
@@ -148,7 +149,10 @@ def procedural_image(width: int = 1024, height: int = 512, seed: int = 0) -> np.
 
 
 def _checker_and_grid(width: int, height: int) -> np.ndarray:
-    """(H, W) multiplier: soft 30-degree checker and dark lines every 10 degrees."""
+    """(H, W) multiplier: soft 30-degree checker and dark lines every 10 degrees or more.
+
+    Lines stay at least _MIN_LINE_SPACING_PX apart so small maps are not all grid.
+    """
     x = np.arange(width) + 0.5  # pixel-centre coordinates in pixels
     y = np.arange(height) + 0.5
     phi = x / width * 2.0 * np.pi
@@ -163,5 +167,8 @@ def _checker_and_grid(width: int, height: int) -> np.ndarray:
         dist = np.abs(coord / spacing - np.round(coord / spacing)) * spacing
         return np.exp(-0.5 * (dist / 0.8) ** 2)
 
-    grid = np.maximum(lines(y, height / 18)[:, None], lines(x, width / 36)[None, :])
+    px_per_deg = width / 360.0
+    step_deg = next((d for d in (10, 15, 30, 45, 90) if d * px_per_deg >= _MIN_LINE_SPACING_PX), 90)
+    sx, sy = width * step_deg / 360.0, height * step_deg / 180.0
+    grid = np.maximum(lines(y, sy)[:, None], lines(x, sx)[None, :])
     return (checker * (1.0 - 0.5 * grid)).astype(np.float32)

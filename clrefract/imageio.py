@@ -124,7 +124,8 @@ def image_size(path: PathLike) -> tuple[int, int]:
             with OpenEXR.File(str(path), header_only=True) as f:
                 lo, hi = f.header()["dataWindow"]
             return int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
-        shape = iio.improps(path).shape
+        # Pillow reads PNG/JPEG; naming it keeps imageio from trying every plugin on a bad file.
+        shape = iio.improps(path, plugin="pillow").shape
         return int(shape[1]), int(shape[0])
-    except Exception as e:
-        raise ClrefractError(f"{path}: cannot read the image size ({e})") from None
+    except Exception:  # imageio's messages suggest plugins to install; not useful here
+        raise ClrefractError(f"{path}: cannot read the image size (not a readable image)") from None
