@@ -8,13 +8,14 @@
  * that state, so each RK4 stage splats its integrand with the stage weight. The field gives
  * field_adjoint(): eta, grad eta, Hess(eta) mu, and the splat (see field_voxel.cl). */
 
-/* Fields with shared parameters (MLP weights) accumulate them per work-item in private
- * memory over the whole ray and flush once; others splat to global memory only. */
+/* Fields accumulate in private memory what they can (a voxel grid: the cell a ray is
+ * in; shared MLP weights: the whole ray) and reach global memory when that changes or at
+ * the end (FIELD_ACC_FLUSH). */
 #ifndef FIELD_ACC_DECL
 #define FIELD_ACC_DECL
 #define FIELD_ACC_PARAM
 #define FIELD_ACC_ARG
-#define FIELD_ACC_FLUSH(partial, gid)
+#define FIELD_ACC_FLUSH(grad, partial, gid)
 #endif
 
 /* Time derivative of the augmented state; splats w * (mu . dD/dtheta) on the way. */
@@ -77,5 +78,5 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
 #undef ADV
     }
     VSTORE(x, i, bx); VSTORE(y, i, by); VSTORE(z, i, bz);
-    FIELD_ACC_FLUSH(partial, i);
+    FIELD_ACC_FLUSH(grad, partial, i);
 }

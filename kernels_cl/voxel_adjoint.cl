@@ -3,6 +3,36 @@
  * Layout as field_voxel.cl: node-centred, node (0,0,0) at the box's low corner, values at
  * fd[(i * VOX_NY + j) * VOX_NZ + k]; eta = 1 + W (g - 1) with W the box window. */
 
+/* Each lane keeps the splats of its current cell in private memory and adds them to the
+ * global gradient when it moves to another cell: a ray takes several steps per cell, so
+ * this saves most of the atomic additions. */
+#define FIELD_ACC_DECL                                                                       \
+    int vcell[LANES];                                                                        \
+    REAL vacc[LANES][8];                                                                     \
+    for (int l_ = 0; l_ < LANES; ++l_) {                                                     \
+        vcell[l_] = -1;                                                                      \
+        for (int c_ = 0; c_ < 8; ++c_)                                                       \
+            vacc[l_][c_] = 0;                                                                \
+    }
+#define FIELD_ACC_PARAM , int *vcell, REAL(*vacc)[8]
+#define FIELD_ACC_ARG , vcell, vacc
+#define FIELD_ACC_FLUSH(grad, partial, gid)                                                  \
+    for (int l_ = 0; l_ < LANES; ++l_)                                                       \
+        voxel_flush(grad, vcell[l_], vacc[l_])
+
+inline void voxel_flush(__global REAL *grad, int cell, REAL *acc) {
+    if (cell < 0)
+        return;
+    for (int a = 0; a < 2; ++a)
+        for (int b = 0; b < 2; ++b)
+            for (int c = 0; c < 2; ++c) {
+                REAL *v = acc + 4 * a + 2 * b + c;
+                if (*v != 0)
+                    atomic_add_real(grad + cell + (a * VOX_NY + b) * VOX_NZ + c, *v);
+                *v = 0;
+            }
+}
+
 /* weights of the low/high node along one axis: value, first and second derivative in t */
 inline void vox_axis(REAL t, REAL *w, REAL *d, REAL *s) {
 #if VOX_SMOOTH
@@ -17,7 +47,7 @@ inline void vox_axis(REAL t, REAL *w, REAL *d, REAL *s) {
 
 inline REAL voxel_adjoint1(__global const REAL *restrict fd, __global REAL *grad, REAL x,
                            REAL y, REAL z, REAL mx, REAL my, REAL mz, REAL w, REAL *ge,
-                           REAL *hm) {
+                           REAL *hm, int *cell, REAL *acc) {
     const REAL hx = ((REAL)BOX_HI_X - (REAL)BOX_LO_X) / (VOX_NX - 1);
     const REAL hy = ((REAL)BOX_HI_Y - (REAL)BOX_LO_Y) / (VOX_NY - 1);
     const REAL hz = ((REAL)BOX_HI_Z - (REAL)BOX_LO_Z) / (VOX_NZ - 1);
@@ -73,6 +103,11 @@ inline REAL voxel_adjoint1(__global const REAL *restrict fd, __global REAL *grad
     hm[2] = H[4] * m[0] + H[5] * m[1] + H[2] * m[2];
     if (w != 0 && W != 0) {
         /* d eta / d theta_c = W c;  d (mu . grad eta) / d theta_c = c (mu . gW) + W mu . grad c */
+        int base = (i * VOX_NY + j) * VOX_NZ + k;
+        if (base != *cell) {
+            voxel_flush(grad, *cell, acc);
+            *cell = base;
+        }
         REAL am = w * (mx * ge[0] + my * ge[1] + mz * ge[2]);
         REAL mw = mx * gw[0] + my * gw[1] + mz * gw[2];
         for (int a = 0; a < 2; ++a)
@@ -82,7 +117,7 @@ inline REAL voxel_adjoint1(__global const REAL *restrict fd, __global REAL *grad
                     REAL cm = mx * dx[a] * wy[b] * wz[c] + my * wx[a] * dy[b] * wz[c] +
                               mz * wx[a] * wy[b] * dz[c];
                     REAL v = am * W * cv + w * eta * (cv * mw + W * cm);
-                    atomic_add_real(grad + ((i + a) * VOX_NY + (j + b)) * VOX_NZ + (k + c), v);
+                    acc[4 * a + 2 * b + c] += v;
                 }
     }
     return eta;
@@ -90,7 +125,7 @@ inline REAL voxel_adjoint1(__global const REAL *restrict fd, __global REAL *grad
 
 inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, realv my,
                            realv mz, realv w, realv *gx, realv *gy, realv *gz, realv *hx,
-                           realv *hy, realv *hz, __global REAL *grad) {
+                           realv *hy, realv *hz, __global REAL *grad FIELD_ACC_PARAM) {
     REAL xs[LANES], ys[LANES], zs[LANES], ms[3][LANES], ws[LANES];
     REAL eo[LANES], go[3][LANES], ho[3][LANES];
     VSTORE(x, 0, xs); VSTORE(y, 0, ys); VSTORE(z, 0, zs);
@@ -99,7 +134,7 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
     for (int l = 0; l < LANES; ++l) {
         REAL ge[3], hm[3];
         eo[l] = voxel_adjoint1(fd, grad, xs[l], ys[l], zs[l], ms[0][l], ms[1][l], ms[2][l],
-                               ws[l], ge, hm);
+                               ws[l], ge, hm, &vcell[l], vacc[l]);
         for (int a = 0; a < 3; ++a) {
             go[a][l] = ge[a];
             ho[a][l] = hm[a];
