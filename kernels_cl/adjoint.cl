@@ -1,12 +1,15 @@
 /* Adjoint-state backward pass (SPEC section 3), constant memory per ray.
  *
- * From the last in-box state (x_K, v_K) and the terminal adjoint mu(T) = dJ/dv, integrate
- * backwards in sigma, with classic RK4, the augmented system
- *     x' = v,  v' = D(x),  lambda' = -H_D(x) mu,  mu' = -lambda,   D = eta grad eta,
+ * From the last in-box state (x_K, v_K) and the terminal adjoint mu(T) = dJ/dv, lambda(T) = 0,
+ * integrate backwards in sigma the ray and its adjoint:
+ *     x'' = D(x),  mu'' = -lambda' = H_D(x) mu,  D = eta grad eta,
  *     H_D mu = grad eta (grad eta . mu) + eta Hess(eta) mu,
- * and the parameter gradient dJ/dtheta = int mu . dD/dtheta dsigma as one more component of
- * that state, so each RK4 stage splats its integrand with the stage weight. The field gives
- * field_adjoint(): eta, grad eta, Hess(eta) mu, and the splat (see field_voxel.cl). */
+ * a second-order system in y = (x, mu) with y' = (v, -lambda), so the same Runge-Kutta-Nystrom
+ * step as the forward pass applies (3 field evaluations per step, 4th order). The parameter
+ * gradient dJ/dtheta = int mu . dD/dtheta dsigma is integrated by Simpson's rule on the
+ * step's stages (sigma, sigma - h/2, sigma - h): each stage splats its integrand with weight
+ * h/6, 4h/6, h/6. The field gives field_adjoint(): eta, grad eta, Hess(eta) mu, and the
+ * splat (see voxel_adjoint.cl). */
 
 /* Fields accumulate in private memory what they can (a voxel grid: the cell a ray is
  * in; shared MLP weights: the whole ray) and reach global memory when that changes or at
@@ -18,28 +21,21 @@
 #define FIELD_ACC_FLUSH(grad, partial, gid)
 #endif
 
-/* Time derivative of the augmented state; splats w * (mu . dD/dtheta) on the way. */
-inline void adjoint_rhs(FIELD_PARAMS, __global REAL *grad FIELD_ACC_PARAM, realv w, realv x,
-                        realv y, realv z, realv mx, realv my, realv mz, realv lx, realv ly,
-                        realv lz, realv *dvx, realv *dvy, realv *dvz, realv *dlx, realv *dly,
-                        realv *dlz) {
+/* f(y) = (D(x), H_D(x) mu); splats w * (mu . dD/dtheta) on the way. */
+inline void adjoint_f(FIELD_PARAMS, __global REAL *grad FIELD_ACC_PARAM, realv w, realv x,
+                      realv y, realv z, realv mx, realv my, realv mz, realv *fx, realv *fy,
+                      realv *fz, realv *fmx, realv *fmy, realv *fmz) {
     realv gx, gy, gz, hx, hy, hz;
     realv eta = field_adjoint(FIELD_ARGS, x, y, z, mx, my, mz, w, &gx, &gy, &gz, &hx, &hy, &hz,
                               grad FIELD_ACC_ARG);
-    *dvx = eta * gx;
-    *dvy = eta * gy;
-    *dvz = eta * gz;
+    *fx = eta * gx;
+    *fy = eta * gy;
+    *fz = eta * gz;
     realv gm = gx * mx + gy * my + gz * mz;
-    *dlx = -(gx * gm + eta * hx);
-    *dly = -(gy * gm + eta * hy);
-    *dlz = -(gz * gm + eta * hz);
+    *fmx = gx * gm + eta * hx;
+    *fmy = gy * gm + eta * hy;
+    *fmz = gz * gm + eta * hz;
 }
-
-#define STAGE(W, X, Y, Z, VX, VY, VZ, LX, LY, LZ, MX, MY, MZ, K)                              \
-    realv K##xx = VX, K##xy = VY, K##xz = VZ, K##vx, K##vy, K##vz, K##lx, K##ly, K##lz;        \
-    realv K##mx = -(LX), K##my = -(LY), K##mz = -(LZ);                                        \
-    adjoint_rhs(FIELD_ARGS, grad FIELD_ACC_ARG, W, X, Y, Z, MX, MY, MZ, LX, LY, LZ, &K##vx,     \
-                &K##vy, &K##vz, &K##lx, &K##ly, &K##lz)
 
 __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
                            __global const REAL *pyk, __global const REAL *pzk,
@@ -50,31 +46,37 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
                            __global REAL *partial, __global REAL *bx, __global REAL *by,
                            __global REAL *bz) {
     const size_t i = get_global_id(0);
+    /* y = (x, mu), y' = (v, nu) with nu = -lambda; the step k = -h runs backwards */
     realv x = VLOAD(i, pxk), y = VLOAD(i, pyk), z = VLOAD(i, pzk);
     realv vx = VLOAD(i, qxk), vy = VLOAD(i, qyk), vz = VLOAD(i, qzk);
     realv mx = VLOAD(i, mux), my = VLOAD(i, muy), mz = VLOAD(i, muz);
-    realv lx = RV(0), ly = RV(0), lz = RV(0);
+    realv nx = RV(0), ny = RV(0), nz = RV(0);
     realv n = TO_REALV(VLOAD(i, steps));
     FIELD_ACC_DECL
-    const REAL hh = (REAL)0.5 * h, h6 = h / (REAL)6;
-    for (int k = 0; ANY(RV(k) < n); ++k) {
-        maskv active = RV(k) < n;
-        realv w = SEL(RV(0), RV(h6), active);
-        STAGE(w, x, y, z, vx, vy, vz, lx, ly, lz, mx, my, mz, a);
-        STAGE(RV(2) * w, x - hh * axx, y - hh * axy, z - hh * axz, vx - hh * avx,
-              vy - hh * avy, vz - hh * avz, lx - hh * alx, ly - hh * aly, lz - hh * alz,
-              mx - hh * amx, my - hh * amy, mz - hh * amz, b);
-        STAGE(RV(2) * w, x - hh * bxx, y - hh * bxy, z - hh * bxz, vx - hh * bvx,
-              vy - hh * bvy, vz - hh * bvz, lx - hh * blx, ly - hh * bly, lz - hh * blz,
-              mx - hh * bmx, my - hh * bmy, mz - hh * bmz, c);
-        STAGE(w, x - h * cxx, y - h * cxy, z - h * cxz, vx - h * cvx, vy - h * cvy,
-              vz - h * cvz, lx - h * clx, ly - h * cly, lz - h * clz, mx - h * cmx,
-              my - h * cmy, mz - h * cmz, d);
-#define ADV(S, C) S = SEL(S, S - h6 * (a##C + RV(2) * (b##C + c##C) + d##C), active)
-        ADV(x, xx); ADV(y, xy); ADV(z, xz);
-        ADV(vx, vx); ADV(vy, vy); ADV(vz, vz);
-        ADV(lx, lx); ADV(ly, ly); ADV(lz, lz);
-        ADV(mx, mx); ADV(my, my); ADV(mz, mz);
+    const REAL k = -h, k2 = (REAL)0.5 * k, k8 = (REAL)0.125 * k, s6 = (REAL)1 / (REAL)6;
+    for (int it = 0; ANY(RV(it) < n); ++it) {
+        maskv active = RV(it) < n;
+        realv w = SEL(RV(0), RV(h * s6), active);
+        realv ax, ay, az, amx, amy, amz, bx_, by_, bz_, bmx, bmy, bmz;
+        realv cx, cy, cz, cmx, cmy, cmz;
+        adjoint_f(FIELD_ARGS, grad FIELD_ACC_ARG, w, x, y, z, mx, my, mz, &ax, &ay, &az, &amx,
+                  &amy, &amz);
+        ax *= k; ay *= k; az *= k; amx *= k; amy *= k; amz *= k;
+        adjoint_f(FIELD_ARGS, grad FIELD_ACC_ARG, RV(4) * w, x + k2 * vx + k8 * ax,
+                  y + k2 * vy + k8 * ay, z + k2 * vz + k8 * az, mx + k2 * nx + k8 * amx,
+                  my + k2 * ny + k8 * amy, mz + k2 * nz + k8 * amz, &bx_, &by_, &bz_, &bmx,
+                  &bmy, &bmz);
+        bx_ *= k; by_ *= k; bz_ *= k; bmx *= k; bmy *= k; bmz *= k;
+        adjoint_f(FIELD_ARGS, grad FIELD_ACC_ARG, w, x + k * vx + k2 * bx_,
+                  y + k * vy + k2 * by_, z + k * vz + k2 * bz_, mx + k * nx + k2 * bmx,
+                  my + k * ny + k2 * bmy, mz + k * nz + k2 * bmz, &cx, &cy, &cz, &cmx, &cmy,
+                  &cmz);
+        cx *= k; cy *= k; cz *= k; cmx *= k; cmy *= k; cmz *= k;
+#define ADV(P, V, A, B, C)                                                                   \
+    P = SEL(P, P + k * (V + s6 * (A + RV(2) * B)), active);                                  \
+    V = SEL(V, V + s6 * (A + RV(4) * B + C), active)
+        ADV(x, vx, ax, bx_, cx); ADV(y, vy, ay, by_, cy); ADV(z, vz, az, bz_, cz);
+        ADV(mx, nx, amx, bmx, cmx); ADV(my, ny, amy, bmy, cmy); ADV(mz, nz, amz, bmz, cmz);
 #undef ADV
     }
     VSTORE(x, i, bx); VSTORE(y, i, by); VSTORE(z, i, bz);
