@@ -173,7 +173,7 @@ class SmoothSolid(AnalyticField):
 
     @property
     def suggested_step(self) -> float:
-        return min(0.5, self.width / 4)
+        return min(0.5, self.width / 8)
 
     def sdf(self, pts):
         """Signed distance (n,) and its gradient (n, 3)."""
