@@ -172,6 +172,9 @@ class Runtime:
         header += [f"#define {k} {v}" for k, v in sorted(defines.items())]
         text = "\n".join(header) + "\n" + "\n".join(kernel_source(s) for s in sources)
         options = ["-cl-std=CL1.2"]
+        if self.info.float_atomics and self._opencl_c_3():
+            # atomic float add from cl_ext_float_atomics instead of compare-and-swap loops
+            options = ["-cl-std=CL3.0", "-DFLOAT_ATOMICS=1"]
         if precision == "float32":
             # unsuffixed literals stay single precision on devices without fp64
             options.append("-cl-single-precision-constant")
@@ -186,6 +189,12 @@ class Runtime:
             ) from None
         self._programs[key] = Kernels(self.cl, prg)
         return self._programs[key]
+
+    def _opencl_c_3(self) -> bool:
+        try:
+            return "3." in self.device.opencl_c_version
+        except self.cl.Error:
+            return False
 
     def real_dtype(self, precision: str):
         return np.float64 if precision == "float64" else np.float32
