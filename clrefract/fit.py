@@ -58,6 +58,7 @@ class FitConfig:
     lr_mlp: float = 1e-3
     lr_final: float = 0.1  # learning rates decay exponentially to this fraction
     reg: float = 1e-4  # weight of the smoothness regulariser
+    sparsity: float = 0.0  # weight of an L1 pull of voxel values towards eta = 1 (empty space)
     env_blur: float = 4.0  # initial environment blur in pixels, sharpened to 0
     blur_until: float = 0.5  # fraction of the iterations over which the blur goes to 0
     step: float = 1.0
@@ -311,6 +312,8 @@ class Fit:
         )
         reg, greg = self.field.regularizer(self.params)
         grad = r.grad + self.cfg.reg * greg
+        if self.cfg.sparsity and self.cfg.field == "voxel":
+            grad = grad + self.cfg.sparsity * (self.params > 1.0)
         if not np.all(np.isfinite(grad)):
             raise FloatingPointError("non-finite gradient")
         decay = self.cfg.lr_final ** (self.it / self.cfg.iterations)
