@@ -1,0 +1,481 @@
+"""Multi-resolution hash grid + MLP index field (the paper's Vertex-Net, after instant-ngp).
+
+Layout, shared with kernels_cl/field_hashgrid.cl:
+
+- Encoding. The box is normalised to the unit cube, u = (x - box.lo) / box.size, clamped to
+  [0, 1]^3 (clamped coordinates have zero derivative). Level l (0 <= l < L) has resolution
+  N_l = floor(N_min b^l), b = exp((ln N_max - ln N_min) / (L - 1)) (b = 1 when L = 1), and
+  grid vertices 0..N_l per axis at p = u N_l. The cell holding p is c = min(floor(p), N_l - 1)
+  and t = p - c in [0, 1]; the corner weights per axis are 1 - s(t) and s(t), with
+  s(t) = 3t^2 - 2t^3 ("smoothstep", C1, the default: the adjoint pass needs second
+  derivatives) or s(t) = t ("trilinear", C0). Vertex (i, j, k) of level l has table index
+      dense (when (N_l + 1)^3 <= T):  (i (N_l + 1) + j) (N_l + 1) + k
+      hashed (otherwise):             (i * 1 ^ j * 2654435761 ^ k * 805459861) & (T - 1)
+  in uint32 arithmetic (T = 2^log2_table). Feature f of level l is the interpolation of the
+  table entries tables[l, index, f]; the L*F features are ordered (l, f), level slowest.
+- MLP. features (L*F) -> `layers` hidden layers of width `hidden` with softplus -> 1 output o.
+  g = 1 + (eta_max - 1) sigmoid(o) in [1, eta_max]; eta = 1 + W(x) (g - 1) with W the box
+  window, so rays leave the box in straight lines. The gradient is exact (forward mode).
+- Parameters: ONE flat float64 vector (data(), fd on the device):
+      tables  L*T*F  as tables[l, index, f] in C order, offset 0 (`table_slice`)
+      MLP     layer by layer: W (out x in, row-major) then b (out), for the hidden layers and
+              the output layer (out = 1), offset L*T*F (`mlp_slice`)
+- Small parameters (params(), fp on the device): [eta_max, N_0 .. N_{L-1},
+  dense_0 .. dense_{L-1}] (dense_l = 1.0 for a directly indexed level, 0.0 for a hashed one).
+- Build defines: FIELD_HASHGRID, HG_LEVELS, HG_FEATURES, HG_LOG2T, HG_HIDDEN, HG_LAYERS,
+  HG_SMOOTH and HG_MLP_OFFSET (= L*T*F, where the MLP starts in fd).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ClrefractError
+from .base import Box, Field, box_window
+
+INTERPS = ("smoothstep", "trilinear")
+PRIMES = (1, 2654435761, 805459861)  # spatial-hash multipliers of x, y, z (instant-ngp)
+_CHUNK = 1 << 15  # points per block in the NumPy reference (bounds temporary memory)
+
+
+@dataclass(frozen=True)
+class HashGridConfig:
+    """Shape of the encoding and the MLP (defaults: instant-ngp's, two hidden layers of 64)."""
+
+    levels: int = 16
+    features: int = 2
+    log2_table: int = 19
+    n_min: int = 16
+    n_max: int = 512
+    hidden: int = 64
+    layers: int = 2
+    eta_max: float = 1.6
+    interp: str = "smoothstep"
+
+    def __post_init__(self):
+        ints = ("levels", "features", "log2_table", "n_min", "n_max", "hidden", "layers")
+        for name in ints:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer):
+                raise ClrefractError(f"hash grid {name} must be an integer, got {v!r}")
+            object.__setattr__(self, name, int(v))
+        if self.levels < 1 or self.features < 1 or self.hidden < 1:
+            raise ClrefractError("hash grid levels, features and hidden must be at least 1")
+        if not 1 <= self.log2_table <= 26:
+            raise ClrefractError(f"hash grid log2_table must be in 1..26, got {self.log2_table}")
+        if not 1 <= self.n_min <= self.n_max:
+            raise ClrefractError(
+                f"hash grid needs 1 <= n_min <= n_max, got n_min={self.n_min}, n_max={self.n_max}"
+            )
+        if self.n_max > 1 << 20:
+            raise ClrefractError(f"hash grid n_max must be at most 2^20, got {self.n_max}")
+        if self.layers not in (1, 2):
+            raise ClrefractError(f"hash grid layers must be 1 or 2, got {self.layers}")
+        if not (math.isfinite(self.eta_max) and self.eta_max > 1):
+            raise ClrefractError(f"hash grid eta_max must be > 1, got {self.eta_max!r}")
+        object.__setattr__(self, "eta_max", float(self.eta_max))
+        if self.interp not in INTERPS:
+            raise ClrefractError(f"hash grid interp must be one of {INTERPS}, got {self.interp!r}")
+        if self.n_table_params >= 1 << 31:
+            raise ClrefractError(
+                f"hash grid tables of {self.n_table_params} entries exceed 2^31 (kernel indices)"
+            )
+
+    @property
+    def table_size(self) -> int:
+        return 1 << self.log2_table
+
+    @property
+    def n_features(self) -> int:
+        return self.levels * self.features
+
+    @property
+    def n_table_params(self) -> int:
+        return self.levels * self.table_size * self.features
+
+    @property
+    def growth(self) -> float:
+        """b = exp((ln N_max - ln N_min) / (L - 1)), 1 for a single level."""
+        if self.levels == 1:
+            return 1.0
+        return math.exp((math.log(self.n_max) - math.log(self.n_min)) / (self.levels - 1))
+
+    @property
+    def resolutions(self) -> list[int]:
+        """N_l = floor(N_min b^l); the tolerance keeps N_{L-1} = N_max against rounding."""
+        b = self.growth
+        return [
+            int(math.floor(self.n_min * b**level * (1 + 1e-12))) for level in range(self.levels)
+        ]
+
+    @property
+    def dense(self) -> list[bool]:
+        """Whether each level indexes its vertices directly ((N_l + 1)^3 <= T)."""
+        return [(n + 1) ** 3 <= self.table_size for n in self.resolutions]
+
+    @property
+    def layer_shapes(self) -> list[tuple[int, int]]:
+        """(out, in) of every MLP layer, the output layer last."""
+        shapes, n_in = [], self.n_features
+        for _ in range(self.layers):
+            shapes.append((self.hidden, n_in))
+            n_in = self.hidden
+        shapes.append((1, n_in))
+        return shapes
+
+    @property
+    def n_mlp_params(self) -> int:
+        return sum(o * i + o for o, i in self.layer_shapes)
+
+    @property
+    def n_params(self) -> int:
+        return self.n_table_params + self.n_mlp_params
+
+    @classmethod
+    def from_dict(cls, d: dict) -> HashGridConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ClrefractError(f"unknown hash grid config keys: {', '.join(sorted(unknown))}")
+        return cls(**d)
+
+
+def hash_index(i, j, k, log2_table: int) -> np.ndarray:
+    """Spatial hash of integer vertices: (i * 1 ^ j * 2654435761 ^ k * 805459861) mod 2^log2T,
+    in uint32 arithmetic (the products wrap modulo 2^32)."""
+    u = [np.asarray(a).astype(np.uint32) for a in (i, j, k)]
+    h = (
+        (u[0] * np.uint32(PRIMES[0]))
+        ^ (u[1] * np.uint32(PRIMES[1]))
+        ^ (u[2] * np.uint32(PRIMES[2]))
+    )
+    return (h & np.uint32((1 << log2_table) - 1)).astype(np.int64)
+
+
+def dense_index(i, j, k, n: int) -> np.ndarray:
+    """Direct index of vertex (i, j, k) on a level of n cells per axis (x slowest)."""
+    s = n + 1
+    return (np.asarray(i, np.int64) * s + np.asarray(j, np.int64)) * s + np.asarray(k, np.int64)
+
+
+def _softplus(h):
+    return np.logaddexp(0.0, h)
+
+
+def _sigmoid(h):
+    e = np.exp(-np.abs(h))
+    return np.where(h >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+
+
+def _axis_weights(t, smooth: bool):
+    """s(t), s'(t), s''(t) of the high corner's weight along one axis."""
+    if smooth:
+        return t * t * (3 - 2 * t), 6 * t * (1 - t), 6 - 12 * t
+    return t, np.ones_like(t), np.zeros_like(t)
+
+
+_CORNERS = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])  # (8, 3)
+
+
+class HashGridField(Field):
+    """eta(x) from a multi-resolution hash encoding and a small MLP (module docstring: layout).
+
+    config: HashGridConfig; box: the field's box (its walls get the window);
+    params: the flat parameter vector (copied), or None for instant-ngp's initialisation:
+            tables uniform(-1e-4, 1e-4), hidden layers Kaiming-uniform with zero biases, the
+            output layer small with bias -6 so that the initial eta is close to 1;
+    seed: seed of that initialisation.
+    """
+
+    kind = "hashgrid"
+    source = "field_hashgrid.cl"
+
+    def __init__(
+        self,
+        config: HashGridConfig | None = None,
+        box: Box | None = None,
+        params: np.ndarray | None = None,
+        seed: int = 0,
+    ):
+        self.config = config or HashGridConfig()
+        self.box = box or Box()
+        if params is None:
+            self.params_vec = self.initial_params(self.config, seed)
+        else:
+            self.params_vec = self._checked(params)
+
+    # --- parameters -------------------------------------------------------------------------
+    @staticmethod
+    def initial_params(config: HashGridConfig, seed: int = 0) -> np.ndarray:
+        rng = np.random.default_rng(seed)
+        p = np.empty(config.n_params)
+        p[: config.n_table_params] = rng.uniform(-1e-4, 1e-4, config.n_table_params)
+        off = config.n_table_params
+        shapes = config.layer_shapes
+        for n, (o, i) in enumerate(shapes):
+            last = n == len(shapes) - 1
+            bound = (1.0 / math.sqrt(i)) if last else math.sqrt(6.0 / i)
+            p[off : off + o * i] = rng.uniform(-bound, bound, o * i)
+            off += o * i
+            p[off : off + o] = -6.0 if last else 0.0
+            off += o
+        return p
+
+    def _checked(self, params) -> np.ndarray:
+        p = np.array(params, dtype=np.float64).reshape(-1)
+        if p.size != self.config.n_params:
+            raise ClrefractError(
+                f"hash grid with this config has {self.config.n_params} parameters "
+                f"({self.config.n_table_params} table + {self.config.n_mlp_params} MLP), "
+                f"got {p.size}"
+            )
+        if not np.all(np.isfinite(p)):
+            raise ClrefractError(
+                f"hash grid parameters contain {int(np.sum(~np.isfinite(p)))} non-finite values"
+            )
+        return p
+
+    @property
+    def table_slice(self) -> slice:
+        """Where the hash tables lie in the flat parameter vector."""
+        return slice(0, self.config.n_table_params)
+
+    @property
+    def mlp_slice(self) -> slice:
+        """Where the MLP weights and biases lie in the flat parameter vector."""
+        return slice(self.config.n_table_params, self.config.n_params)
+
+    @property
+    def tables(self) -> np.ndarray:
+        """View (L, T, F) of the tables inside the parameter vector."""
+        c = self.config
+        return self.params_vec[self.table_slice].reshape(c.levels, c.table_size, c.features)
+
+    def mlp_layers(self, params: np.ndarray | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Views (W (out, in), b (out,)) of every layer, the output layer last."""
+        p = self.params_vec if params is None else params
+        out, off = [], self.config.n_table_params
+        for o, i in self.config.layer_shapes:
+            w = p[off : off + o * i].reshape(o, i)
+            off += o * i
+            out.append((w, p[off : off + o]))
+            off += o
+        return out
+
+    def set_data(self, params: np.ndarray) -> None:
+        """Take a new flat parameter vector (copied)."""
+        self.params_vec = self._checked(params)
+
+    def param_groups(self, lr: float = 1e-3, lr_table: float | None = None, lr_mlp=None, **_):
+        """Adam groups: the tables (sparse, as instant-ngp) and the MLP, each its own rate."""
+        from ..adam import ParamGroup
+
+        t, m = self.table_slice, self.mlp_slice
+        return [
+            ParamGroup("tables", t.start, t.stop, lr if lr_table is None else lr_table, True),
+            ParamGroup("mlp", m.start, m.stop, lr if lr_mlp is None else lr_mlp),
+        ]
+
+    # --- what the tracer needs ---------------------------------------------------------------
+    def defines(self) -> dict:
+        c = self.config
+        return {
+            "FIELD_HASHGRID": 1,
+            "HG_LEVELS": c.levels,
+            "HG_FEATURES": c.features,
+            "HG_LOG2T": c.log2_table,
+            "HG_HIDDEN": c.hidden,
+            "HG_LAYERS": c.layers,
+            "HG_SMOOTH": int(c.interp == "smoothstep"),
+            "HG_MLP_OFFSET": c.n_table_params,
+        }
+
+    def params(self) -> np.ndarray:
+        """[eta_max, N_0 .. N_{L-1}, dense_0 .. dense_{L-1}] (fp in the kernel)."""
+        c = self.config
+        return np.array([c.eta_max, *c.resolutions, *map(float, c.dense)], np.float64)
+
+    def data(self) -> np.ndarray:
+        """The flat parameter vector: tables, then the MLP (fd in the kernel)."""
+        return self.params_vec
+
+    def uses_window(self) -> bool:
+        return True
+
+    @property
+    def eta_max(self) -> float:
+        return self.config.eta_max
+
+    @property
+    def suggested_step(self) -> float:
+        """Half the finest level's cell (a step does not jump over its features), at most 0.5."""
+        cell = float(self.box.size.min()) / self.config.resolutions[-1]
+        return float(min(0.5, 0.5 * cell))
+
+    def to_dict(self) -> dict:
+        """Metadata only (the parameters live in the .npz file)."""
+        return {"kind": self.kind, **asdict(self.config), "box": self.box.to_dict()}
+
+    # --- NumPy reference ---------------------------------------------------------------------
+    def _level_corners(self, u: np.ndarray, inside: np.ndarray, level: int, second=False):
+        """The 8 corners of the cell holding normalised points u (n, 3) on one level.
+
+        Returns table indices (n, 8), corner weights w (n, 8), their gradient in x
+        dw (n, 8, 3) and, with `second`, their Hessian in x ddw (n, 8, 3, 3)."""
+        c = self.config
+        n_l = c.resolutions[level]
+        p = u * n_l
+        cell = np.clip(np.floor(p).astype(np.int64), 0, n_l - 1)
+        t = p - cell
+        s, ds, dds = _axis_weights(t, c.interp == "smoothstep")
+        scale = n_l / self.box.size  # dp/dx per axis
+        ds = ds * scale * inside  # clamped coordinates have zero derivative
+        dds = dds * scale**2 * inside
+        # per corner and axis: weight 1 - s (low) or s (high), and its derivatives
+        hi = _CORNERS[None, :, :].astype(bool)  # (1, 8, 3)
+        a = np.where(hi, s[:, None, :], 1.0 - s[:, None, :])  # (n, 8, 3)
+        da = np.where(hi, ds[:, None, :], -ds[:, None, :])
+        w = a.prod(axis=2)
+        dw = np.stack(
+            [
+                da[..., 0] * a[..., 1] * a[..., 2],
+                a[..., 0] * da[..., 1] * a[..., 2],
+                a[..., 0] * a[..., 1] * da[..., 2],
+            ],
+            axis=2,
+        )
+        v = cell[:, None, :] + _CORNERS[None]  # (n, 8, 3) integer vertices
+        if c.dense[level]:
+            idx = dense_index(v[..., 0], v[..., 1], v[..., 2], n_l)
+        else:
+            idx = hash_index(v[..., 0], v[..., 1], v[..., 2], c.log2_table)
+        if not second:
+            return idx, w, dw
+        dda = np.where(hi, dds[:, None, :], -dds[:, None, :])
+        ddw = np.empty(w.shape + (3, 3))
+        for r in range(3):
+            for q in range(3):
+                f = [a[..., 0], a[..., 1], a[..., 2]]
+                if r == q:
+                    f[r] = dda[..., r]
+                else:
+                    f[r], f[q] = da[..., r], da[..., q]
+                ddw[..., r, q] = f[0] * f[1] * f[2]
+        return idx, w, dw, ddw
+
+    def _normalised(self, pts: np.ndarray):
+        u = (pts - np.asarray(self.box.lo)) / self.box.size
+        uc = np.clip(u, 0.0, 1.0)
+        return uc, (u == uc).astype(np.float64)
+
+    def encode(self, pts: np.ndarray, params: np.ndarray | None = None):
+        """Features (n, L*F) and their gradient d features / dx (n, L*F, 3) at points (n, 3)."""
+        pts = np.asarray(pts, np.float64).reshape(-1, 3)
+        c = self.config
+        tab = (self.params_vec if params is None else params)[self.table_slice]
+        tab = tab.reshape(c.levels, c.table_size, c.features)
+        feat = np.empty((len(pts), c.n_features))
+        dfeat = np.empty((len(pts), c.n_features, 3))
+        u, inside = self._normalised(pts)
+        for level in range(c.levels):
+            idx, w, dw = self._level_corners(u, inside, level)
+            v = tab[level][idx]  # (n, 8, F)
+            sl = slice(level * c.features, (level + 1) * c.features)
+            feat[:, sl] = np.einsum("nc,ncf->nf", w, v)
+            dfeat[:, sl] = np.einsum("ncd,ncf->nfd", dw, v)
+        return feat, dfeat
+
+    def mlp(self, feat: np.ndarray, dfeat: np.ndarray, params: np.ndarray | None = None):
+        """Output o (n,) and its gradient (n, 3) by forward mode: value and the 3 directional
+        derivatives pushed through every layer (dh = W df; d softplus(h) = sigmoid(h) dh)."""
+        layers = self.mlp_layers(params)
+        a, da = feat, dfeat  # (n, k), (n, k, 3)
+        for w, b in layers[:-1]:
+            h = a @ w.T + b
+            dh = np.einsum("nid,ji->njd", da, w)
+            a, da = _softplus(h), _sigmoid(h)[:, :, None] * dh
+        w, b = layers[-1]
+        return a @ w[0] + b[0], np.einsum("nid,i->nd", da, w[0])
+
+    def eval(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        pts = np.asarray(pts, np.float64).reshape(-1, 3)
+        eta = np.empty(len(pts))
+        grad = np.empty((len(pts), 3))
+        k = self.config.eta_max - 1.0
+        for a in range(0, len(pts), _CHUNK):
+            p = pts[a : a + _CHUNK]
+            o, do = self.mlp(*self.encode(p))
+            sg = _sigmoid(o)
+            g1, dg1 = k * sg, (k * sg * (1 - sg))[:, None] * do
+            w, dw = box_window(self.box, p)
+            eta[a : a + _CHUNK] = 1.0 + w * g1
+            grad[a : a + _CHUNK] = dw * g1[:, None] + w[:, None] * dg1
+        return eta, grad
+
+    # --- files ------------------------------------------------------------------------------
+    def save(self, path) -> None:
+        """Write an .npz (kind, config as JSON, box lo/hi/margin, params) atomically."""
+        path = Path(path)
+        fd, tmp = tempfile.mkstemp(dir=path.parent or ".", prefix=path.name, suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez_compressed(
+                    f,
+                    kind="hashgrid",
+                    config=json.dumps(asdict(self.config)),
+                    lo=np.asarray(self.box.lo, np.float64),
+                    hi=np.asarray(self.box.hi, np.float64),
+                    margin=self.box.margin,
+                    params=self.params_vec,
+                )
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+
+    @classmethod
+    def load(cls, path) -> HashGridField:
+        """Read a field written by save(); every problem is a ClrefractError naming the file."""
+        path = Path(path)
+        if not path.is_file():
+            raise ClrefractError(f"{path}: hash grid file not found")
+        keys = ("config", "lo", "hi", "margin", "params")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                missing = [k for k in ("kind", *keys) if k not in z.files]
+                if missing:
+                    raise ClrefractError(
+                        f"{path}: not a hash grid file (missing {', '.join(missing)})"
+                    )
+                kind = str(z["kind"])
+                if kind != "hashgrid":
+                    raise ClrefractError(f"{path}: holds a {kind!r} field, not a hash grid")
+                config = json.loads(str(z["config"]))
+                lo, hi = np.asarray(z["lo"], np.float64), np.asarray(z["hi"], np.float64)
+                margin = float(z["margin"])
+                params = np.asarray(z["params"], np.float64)
+        except ClrefractError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - any unreadable file is the user's to fix
+            raise ClrefractError(f"{path}: cannot read hash grid ({exc})") from None
+        if lo.shape != (3,) or hi.shape != (3,):
+            raise ClrefractError(
+                f"{path}: box lo and hi must have 3 entries, got shapes {lo.shape} and {hi.shape}"
+            )
+        try:
+            if not isinstance(config, dict):
+                raise ClrefractError("config is not a JSON object")
+            cfg = HashGridConfig.from_dict(config)
+            box = Box(tuple(lo.tolist()), tuple(hi.tolist()), margin)
+            return cls(cfg, box, params)
+        except ClrefractError as exc:
+            raise ClrefractError(f"{path}: {exc}") from None
+        except TypeError as exc:
+            raise ClrefractError(f"{path}: bad hash grid config ({exc})") from None

@@ -1,0 +1,427 @@
+"""Hash grid + MLP field: kernel against the NumPy reference, exact gradients, indexing, files."""
+
+import json
+from dataclasses import asdict, fields
+
+import numpy as np
+import pytest
+
+from clrefract.errors import ClrefractError
+from clrefract.fields import load_field_file
+from clrefract.fields.base import Box
+from clrefract.fields.hashgrid import (
+    _CORNERS,
+    HashGridConfig,
+    HashGridField,
+    dense_index,
+    hash_index,
+)
+from clrefract.tracer import Tracer
+
+BOX = Box((-50.0, -40.0, -45.0), (50.0, 60.0, 40.0), 4.0)  # unequal axes: a swap shows
+# levels N = 4, 8, 16, 32 with T = 2^12: levels 0 and 1 dense, 2 and 3 hashed
+SMALL = dict(levels=4, features=2, log2_table=12, n_min=4, n_max=32, hidden=16)
+CONFIGS = [("float64", 1), ("float64", 16), ("float32", 1), ("float32", 16)]
+
+
+def randomised(config: HashGridConfig, seed=0) -> HashGridField:
+    """A field whose eta varies noticeably: tables uniform(-1, 1), output bias 0."""
+    f = HashGridField(config, BOX, seed=seed)
+    p = f.data().copy()
+    rng = np.random.default_rng(seed + 100)
+    p[f.table_slice] = rng.uniform(-1, 1, config.n_table_params)
+    p[-1] = 0.0
+    f.set_data(p)
+    return f
+
+
+FIELDS = {
+    "smoothstep": randomised(HashGridConfig(**SMALL)),
+    "trilinear": randomised(HashGridConfig(**SMALL, interp="trilinear")),
+    # one hidden layer, width not a multiple of 4, three features per level
+    "one-layer": randomised(HashGridConfig(**{**SMALL, "hidden": 10, "features": 3}, layers=1)),
+}
+
+_TRACERS: dict = {}
+
+
+def tracer(name, precision, lanes):
+    key = (name, precision, lanes)
+    if key not in _TRACERS:
+        _TRACERS[key] = Tracer(FIELDS[name], BOX, precision=precision, lanes=lanes)
+    return _TRACERS[key]
+
+
+def inner_points(n, seed=1):
+    """Points inside the box beyond the window (2 margins from the walls)."""
+    lo, hi = np.asarray(BOX.lo) + 9, np.asarray(BOX.hi) - 9
+    return np.random.default_rng(seed).uniform(lo, hi, (n, 3))
+
+
+def sample_points(n=600, seed=2):
+    """Interior points, points in the window ramp, and points outside the box."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(BOX.lo), np.asarray(BOX.hi)
+    ramp = rng.uniform(lo + 2, hi - 2, (n, 3))
+    outside = rng.uniform(lo - 5, hi + 5, (n // 4, 3))
+    return np.concatenate([inner_points(n, seed), ramp, outside])
+
+
+def face_distance(field, pts):
+    """Smallest distance (mm) from the points to a cell face of any level."""
+    u = (pts - np.asarray(BOX.lo)) / BOX.size
+    d = np.full(len(pts), np.inf)
+    for n in field.config.resolutions:
+        p = u * n
+        d = np.minimum(d, (np.abs(p - np.round(p)) * BOX.size / n).min(axis=1))
+    return d
+
+
+# --- configuration and indexing ------------------------------------------------------------
+
+
+def test_level_resolutions_and_dense_flags():
+    c = HashGridConfig()
+    b = np.exp((np.log(512) - np.log(16)) / 15)
+    assert c.growth == pytest.approx(b, rel=1e-15)
+    assert c.resolutions[0] == 16 and c.resolutions[-1] == 512
+    expect = [int(np.floor(16 * b**level + 1e-9)) for level in range(16)]
+    assert c.resolutions == expect
+    assert c.dense == [(n + 1) ** 3 <= 2**19 for n in expect]
+    assert c.n_table_params == 16 * 2**19 * 2
+    assert c.n_mlp_params == 64 * 32 + 64 + 64 * 64 + 64 + 64 + 1
+    s = HashGridConfig(**SMALL)
+    assert s.resolutions == [4, 8, 16, 32]
+    assert s.dense == [True, True, False, False]
+    assert HashGridConfig(levels=1, n_min=8, n_max=8).resolutions == [8]
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"levels": 0},
+        {"layers": 3},
+        {"n_min": 64, "n_max": 32},
+        {"eta_max": 1.0},
+        {"eta_max": float("nan")},
+        {"interp": "cubic"},
+        {"log2_table": 0},
+        {"hidden": 2.5},
+    ],
+)
+def test_bad_config_is_refused(kw):
+    with pytest.raises(ClrefractError):
+        HashGridConfig(**kw)
+
+
+def test_hash_matches_spec_on_hand_computed_vertices():
+    # (x * 1 XOR y * 2654435761 XOR z * 805459861) mod 2^32, then mod T (T = 2^12 here);
+    # 2654435761 = 0x9E3779B1, 805459861 = 0x30025795, e.g. for (1, 1, 1):
+    # 0x1 ^ 0x9E3779B1 ^ 0x30025795 = 0xAE352E25, & 0xFFF = 0xE25 = 3621
+    cases = {
+        (0, 0, 0): 0,
+        (1, 0, 0): 1,
+        (0, 1, 0): 2481,
+        (0, 0, 1): 1941,
+        (1, 1, 1): 3621,
+        (3, 5, 7): 1381,  # products wrap modulo 2^32
+        (31, 17, 29): 3903,
+        (1000, 2000, 3000): 3872,
+    }
+    v = np.array(list(cases))
+    got = hash_index(v[:, 0], v[:, 1], v[:, 2], 12)
+    np.testing.assert_array_equal(got, list(cases.values()))
+    for (i, j, k), h in cases.items():
+        full = (i % 2**32) ^ (j * 2654435761 % 2**32) ^ (k * 805459861 % 2**32)
+        assert full % 4096 == h
+    assert int(hash_index(1, 1, 1, 19)) == 0xAE352E25 % 2**19
+
+
+def test_dense_levels_reproduce_direct_indexing():
+    """A dense level is a (N+1)^3 vertex array stored in C order: its features are the
+    smoothstep interpolation of that array, indexed directly."""
+    field = randomised(HashGridConfig(**SMALL), seed=5)
+    c, rng = field.config, np.random.default_rng(6)
+    pts = sample_points(300)
+    feat, dfeat = field.encode(pts)
+    u = np.clip((pts - np.asarray(BOX.lo)) / BOX.size, 0, 1)
+    for level in (0, 1):
+        n = c.resolutions[level]
+        verts = rng.uniform(-1, 1, (n + 1, n + 1, n + 1, c.features))
+        field.tables[level, : (n + 1) ** 3] = verts.reshape(-1, c.features)
+        feat, _ = field.encode(pts)
+        p = u * n
+        cell = np.clip(np.floor(p).astype(int), 0, n - 1)
+        t = p - cell
+        s = t * t * (3 - 2 * t)
+        expect = np.zeros((len(pts), c.features))
+        for a, b, d in _CORNERS:
+            w = (
+                np.where(a, s[:, 0], 1 - s[:, 0])
+                * np.where(b, s[:, 1], 1 - s[:, 1])
+                * np.where(d, s[:, 2], 1 - s[:, 2])
+            )
+            expect += w[:, None] * verts[cell[:, 0] + a, cell[:, 1] + b, cell[:, 2] + d]
+        got = feat[:, level * c.features : (level + 1) * c.features]
+        np.testing.assert_allclose(got, expect, rtol=0, atol=1e-14)
+    assert int(dense_index(1, 2, 3, 4)) == (1 * 5 + 2) * 5 + 3
+
+
+def test_trilinear_dense_level_reproduces_a_linear_function():
+    field = randomised(HashGridConfig(**SMALL, interp="trilinear"), seed=7)
+    n = field.config.resolutions[1]
+    i, j, k = np.meshgrid(*[np.arange(n + 1)] * 3, indexing="ij")
+    lin = np.stack([0.5 * i - 0.25 * j + 0.125 * k, k - 2.0 * i], axis=-1)
+    field.tables[1, : (n + 1) ** 3] = lin.reshape(-1, 2)
+    pts = inner_points(200)
+    feat, dfeat = field.encode(pts)
+    p = (pts - np.asarray(BOX.lo)) / BOX.size * n
+    scale = n / BOX.size
+    np.testing.assert_allclose(feat[:, 2], 0.5 * p[:, 0] - 0.25 * p[:, 1] + 0.125 * p[:, 2])
+    np.testing.assert_allclose(feat[:, 3], p[:, 2] - 2.0 * p[:, 0], atol=1e-12)
+    for col, slope in ((2, [0.5, -0.25, 0.125]), (3, [-2.0, 0.0, 1.0])):
+        expect = np.tile(np.asarray(slope) * scale, (len(pts), 1))
+        np.testing.assert_allclose(dfeat[:, col], expect, rtol=1e-12, atol=1e-14)
+
+
+# --- NumPy reference: exact derivatives ----------------------------------------------------
+
+
+def central_difference(fun, pts, h):
+    cols = []
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = h
+        cols.append((fun(pts + e) - fun(pts - e)) / (2 * h))
+    return np.stack(cols, axis=-1)
+
+
+@pytest.mark.parametrize("name", ["smoothstep", "trilinear", "one-layer"])
+def test_reference_gradient_matches_finite_differences(name):
+    field = FIELDS[name]
+    pts = sample_points(200)
+    pts = pts[face_distance(field, pts) > 1e-3]  # trilinear: grad jumps across faces
+    eta, grad = field.eval(pts)
+    assert eta.max() - eta.min() > 0.2  # the field is far from trivial
+    fd = central_difference(lambda q: field.eval(q)[0], pts, 1e-5)
+    scale = np.abs(grad).max()
+    assert scale > 0.05
+    assert np.abs(fd - grad).max() < 1e-8 * scale
+
+
+def test_encoding_derivatives_match_finite_differences():
+    field = FIELDS["smoothstep"]
+    pts = inner_points(100)
+    _, dfeat = field.encode(pts)
+    fd = central_difference(lambda q: field.encode(q)[0], pts, 1e-5)
+    assert np.abs(fd - dfeat).max() < 1e-7 * np.abs(dfeat).max()
+
+
+def test_corner_weight_hessian_matches_finite_differences():
+    """The second derivatives kept for the adjoint pass (Hessian-vector products)."""
+    field = FIELDS["smoothstep"]
+    pts = inner_points(100)
+    u, inside = field._normalised(pts)
+    _, _, _, ddw = field._level_corners(u, inside, 2, second=True)
+    h = 1e-5
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = h
+        dwp = field._level_corners(*field._normalised(pts + e), 2)[2]
+        dwm = field._level_corners(*field._normalised(pts - e), 2)[2]
+        fd = (dwp - dwm) / (2 * h)
+        assert np.abs(fd - ddw[..., a]).max() < 1e-7 * np.abs(ddw).max()
+
+
+def test_window_makes_eta_one_near_and_outside_the_walls():
+    field = FIELDS["smoothstep"]
+    assert field.uses_window()
+    rng = np.random.default_rng(9)
+    lo, hi = np.asarray(BOX.lo), np.asarray(BOX.hi)
+    pts = rng.uniform(lo + 10, hi - 10, (300, 3))
+    axis = rng.integers(0, 3, 300)
+    wall = np.where(rng.random(300) < 0.5, lo[axis], hi[axis])
+    depth = rng.uniform(-3.0, 3.99, 300)  # within the margin, or outside the box
+    pts[np.arange(300), axis] = wall + np.where(wall == lo[axis], depth, -depth)
+    eta, grad = field.eval(pts)
+    np.testing.assert_array_equal(eta, 1.0)
+    np.testing.assert_array_equal(grad, 0.0)
+    eta, grad = tracer("smoothstep", "float64", 16).eval_field(pts)
+    np.testing.assert_array_equal(eta, 1.0)
+    np.testing.assert_array_equal(grad, 0.0)
+
+
+def test_default_initialisation_gives_eta_close_to_one():
+    field = HashGridField(HashGridConfig(), Box(), seed=3)
+    t = field.data()[field.table_slice]
+    assert np.abs(t).max() <= 1e-4 and np.abs(t).std() > 1e-5
+    eta, grad = field.eval(np.random.default_rng(0).uniform(-40, 40, (64, 3)))
+    assert np.all((eta > 1.0) & (eta < 1.01))
+    assert np.abs(grad).max() < 1e-3
+    assert not np.array_equal(t, HashGridField(HashGridConfig(), Box(), seed=4).data()[: t.size])
+
+
+# --- kernel against the reference ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["smoothstep", "trilinear"])
+@pytest.mark.parametrize("precision,lanes", CONFIGS)
+def test_kernel_matches_numpy_reference(name, precision, lanes):
+    field = FIELDS[name]
+    pts = sample_points()
+    tr = tracer(name, precision, lanes)
+    if precision == "float64":
+        eta, grad = tr.eval_field(pts)
+        eta_ref, grad_ref = field.eval(pts)
+        assert np.abs(eta - eta_ref).max() < 1e-13
+        assert np.abs(grad - grad_ref).max() < 1e-13 * max(1.0, np.abs(grad_ref).max())
+        return
+    # float32: the reference at the rounded points (trilinear: away from cell faces, where
+    # the two precisions may pick different cells and the gradient jumps)
+    pts = pts.astype(np.float32).astype(np.float64)
+    if name == "trilinear":
+        pts = pts[face_distance(field, pts) > 1e-3]
+    eta, grad = tr.eval_field(pts)
+    eta_ref, grad_ref = field.eval(pts)
+    assert np.abs(eta - eta_ref).max() < 1e-6
+    assert np.abs(grad - grad_ref).max() < 5e-6 * np.abs(grad_ref).max()
+
+
+@pytest.mark.parametrize("lanes", [1, 16])
+def test_kernel_one_hidden_layer_and_odd_width(lanes):
+    field = FIELDS["one-layer"]
+    pts = sample_points(200)
+    eta, grad = tracer("one-layer", "float64", lanes).eval_field(pts)
+    eta_ref, grad_ref = field.eval(pts)
+    assert eta_ref.max() - eta_ref.min() > 0.2
+    assert np.abs(eta - eta_ref).max() < 1e-13
+    assert np.abs(grad - grad_ref).max() < 1e-13
+
+
+@pytest.mark.parametrize("lanes", [1, 16])
+def test_kernel_gradient_matches_its_finite_differences(lanes):
+    tr = tracer("smoothstep", "float64", lanes)
+    pts = inner_points(200, seed=11)
+    _, grad = tr.eval_field(pts)
+    fd = central_difference(lambda q: tr.eval_field(q)[0], pts, 1e-5)
+    assert np.abs(fd - grad).max() < 1e-8 * np.abs(grad).max()
+
+
+def test_kernel_sees_parameter_updates():
+    field = randomised(HashGridConfig(**SMALL), seed=12)
+    tr = Tracer(field, BOX, precision="float64", lanes=16)
+    pts = inner_points(50)
+    before = tr.eval_field(pts)[0]
+    p = field.data().copy()
+    p[field.mlp_slice] *= 0.5
+    field.set_data(p)
+    tr.upload_field()
+    after = tr.eval_field(pts)[0]
+    assert np.abs(after - before).max() > 1e-3
+    np.testing.assert_allclose(after, field.eval(pts)[0], rtol=0, atol=1e-13)
+
+
+# --- parameters and files ------------------------------------------------------------------
+
+
+def test_parameter_layout_slices_and_groups():
+    field = FIELDS["smoothstep"]
+    c = field.config
+    assert field.data().shape == (c.n_params,)
+    assert field.table_slice == slice(0, c.n_table_params)
+    assert field.mlp_slice == slice(c.n_table_params, c.n_params)
+    assert np.shares_memory(field.tables, field.data())
+    layers = field.mlp_layers()
+    assert [w.shape for w, _ in layers] == [(16, 8), (16, 16), (1, 16)]
+    assert layers[-1][1][0] == 0.0 and field.data()[-1] == 0.0
+    assert layers[0][0][0, 0] == field.data()[c.n_table_params]
+    groups = field.param_groups(lr=1.0, lr_table=1e-3, lr_mlp=1e-4)
+    assert [(g.start, g.stop, g.lr, g.sparse) for g in groups] == [
+        (0, c.n_table_params, 1e-3, True),
+        (c.n_table_params, c.n_params, 1e-4, False),
+    ]
+    p = field.params()
+    assert p[0] == c.eta_max
+    np.testing.assert_array_equal(p[1:5], c.resolutions)
+    np.testing.assert_array_equal(p[5:9], [1, 1, 0, 0])
+    d = field.defines()
+    assert d["FIELD_HASHGRID"] == 1 and d["HG_MLP_OFFSET"] == c.n_table_params
+    assert d["HG_SMOOTH"] == 1 and FIELDS["trilinear"].defines()["HG_SMOOTH"] == 0
+
+
+def test_wrong_parameter_size_is_refused():
+    c = HashGridConfig(**SMALL)
+    with pytest.raises(ClrefractError, match="parameters"):
+        HashGridField(c, BOX, params=np.zeros(c.n_params - 1))
+    field = HashGridField(c, BOX)
+    with pytest.raises(ClrefractError, match="parameters"):
+        field.set_data(np.zeros(c.n_params + 3))
+    bad = field.data().copy()
+    bad[3] = np.nan
+    with pytest.raises(ClrefractError, match="non-finite"):
+        field.set_data(bad)
+
+
+def test_to_dict_is_metadata_only():
+    d = FIELDS["trilinear"].to_dict()
+    assert d["kind"] == "hashgrid" and d["interp"] == "trilinear" and d["levels"] == 4
+    assert d["box"] == BOX.to_dict()
+    json.dumps(d)
+    assert set(d) == {"kind", "box"} | {f.name for f in fields(HashGridConfig)}
+
+
+def test_save_load_round_trip(tmp_path):
+    field = FIELDS["one-layer"]
+    path = tmp_path / "hg.npz"
+    field.save(path)
+    for loaded in (HashGridField.load(path), load_field_file(path)):
+        assert isinstance(loaded, HashGridField)
+        assert loaded.config == field.config and loaded.box == field.box
+        np.testing.assert_array_equal(loaded.data(), field.data())
+        pts = sample_points(50)
+        np.testing.assert_array_equal(loaded.eval(pts)[0], field.eval(pts)[0])
+
+
+def _write(path, **over):
+    field = FIELDS["smoothstep"]
+    arrays = dict(
+        kind="hashgrid",
+        config=json.dumps(asdict(field.config)),
+        lo=np.asarray(BOX.lo),
+        hi=np.asarray(BOX.hi),
+        margin=BOX.margin,
+        params=field.data(),
+    )
+    arrays.update(over)
+    np.savez(path, **{k: v for k, v in arrays.items() if v is not None})
+    return path
+
+
+def _junk(path):
+    path.write_bytes(b"not a zip file")
+    return path
+
+
+N_SMALL = HashGridConfig(**SMALL).n_params
+
+
+@pytest.mark.parametrize(
+    "make,message",
+    [
+        (lambda p: p / "absent.npz", "not found"),
+        (lambda p: _junk(p / "junk.npz"), "cannot read"),
+        (lambda p: _write(p / "v.npz", kind="voxel"), "not a hash grid"),
+        (lambda p: _write(p / "m.npz", params=None), "missing params"),
+        (lambda p: _write(p / "s.npz", params=np.zeros(10)), "parameters"),
+        (lambda p: _write(p / "n.npz", params=np.full(N_SMALL, np.inf)), "non-finite"),
+        (lambda p: _write(p / "q.npz", kind=None), "missing kind"),
+        (lambda p: _write(p / "c.npz", config="{levels: 4"), "cannot read"),
+        (lambda p: _write(p / "k.npz", config=json.dumps({"levels": 4, "colour": 1})), "unknown"),
+        (lambda p: _write(p / "b.npz", lo=np.zeros(2)), "box"),
+    ],
+)
+def test_load_errors_name_the_file(tmp_path, make, message):
+    path = make(tmp_path)
+    with pytest.raises(ClrefractError, match=message) as err:
+        HashGridField.load(path)
+    assert str(path) in str(err.value)
