@@ -90,7 +90,9 @@ class Tracer:
         if adjoint:
             adj = getattr(field, "adjoint_source", None)
             if adj is None:
-                raise ClrefractError(f"field {field.kind!r} has no parameters to fit")
+                raise ClrefractError(
+                    f"field {field.kind!r} has no backward pass yet, so it cannot be fitted "
+                    "(fitting supports: voxel)")
             sources = ["common.h", field.source, adj, "trace.cl", "adjoint.cl"]
         self.kernels = prg = self.runtime.build(sources, defines, precision)
         self._k_trace = prg.trace_rays
