@@ -25,6 +25,7 @@ from .adam import Adam
 from .dataset import Dataset
 from .errors import ClrefractError
 from .imageio import atomic_path
+from .loss import photometric_loss
 from .metrics import psnr_linear_batch
 from .progress import Progress
 
@@ -59,9 +60,18 @@ class FitConfig:
     lr_final: float = 0.1  # learning rates decay exponentially to this fraction
     reg: float = 1e-4  # weight of the smoothness regulariser
     sparsity: float = 0.0  # weight of an L1 pull of voxel values towards eta = 1 (empty space)
-    env_blur: float = 4.0  # initial environment blur in pixels, sharpened to 0
+    # start: "hull" fills the visual hull of the refraction masks with the index that a
+    # line search on the loss picks, and changes eta only near the hull; "empty": eta = 1
+    init: str = "hull"
+    mask_threshold: float = 0.05  # sRGB difference from the straight view that marks a pixel
+    free_cells: int = 2  # cells around the hull where eta may change (-1: everywhere)
+    hull_tolerance: float = 0.2  # fraction of the views whose mask may have a hole
+    env_blur: float = 0.0  # initial environment blur in pixels, sharpened to 0
     blur_until: float = 0.5  # fraction of the iterations over which the blur goes to 0
     step: float = 1.0
+    # forward states kept every this many steps for the backward pass (0: constant memory);
+    # they stop the re-integrated ray drifting away through sharp interfaces
+    backward_checkpoints: int = 8
     precision: str = "float32"
     loss: str = "srgb"
     queues: int = 1
@@ -79,6 +89,8 @@ class FitConfig:
                 raise ClrefractError(f"{name} must be at least 1, got {getattr(self, name)}")
         if not (self.step > 0 and math.isfinite(self.step)):
             raise ClrefractError(f"step must be positive, got {self.step}")
+        if self.init not in ("hull", "empty"):
+            raise ClrefractError(f"init must be 'hull' or 'empty', got {self.init!r}")
         if self.interp not in ("smoothstep", "trilinear"):
             raise ClrefractError(f"interp must be 'smoothstep' or 'trilinear', got {self.interp!r}")
 
@@ -180,6 +192,10 @@ class Fit:
         self._env_full = self.ds.envmap()
         self._env_cache: dict[float, tuple] = {}
         self.it = 0
+        self._masks = None
+        self._hulls: dict = {}
+        self._free = None
+        self.init_info: dict = {}
         self.field = None
         self.engine = None
         self.adam = None
@@ -203,7 +219,9 @@ class Fit:
             runtime=self.runtime,
             queues=self.cfg.queues,
             loss_space=self.cfg.loss,
+            checkpoint_every=self.cfg.backward_checkpoints,
         )
+        self._update_free()
 
     def _groups(self):
         return self.field.param_groups(
@@ -214,6 +232,73 @@ class Fit:
         res = resolution_at(self.cfg, 0)
         self._bind(self._make_field(res))
         self.adam = Adam(len(self.params), self._groups())
+        if self._hull_fit():
+            self._fill_hull()
+
+    # --- the visual hull: where the object can be -------------------------------------------
+    def _hull_fit(self) -> bool:
+        return self.cfg.init == "hull" and self.cfg.field == "voxel"
+
+    def _hull(self, res: int):
+        from .hull import refraction_mask, visual_hull
+
+        if self._masks is None:
+            env = self._env_full
+            self._masks = [
+                refraction_mask(cam, self.ds.image(cam), env, self.cfg.mask_threshold)
+                for cam in self.ds.train
+            ]
+        if res not in self._hulls:
+            hull = visual_hull(
+                self.box, self.ds.train, self._masks, res, tolerance=self.cfg.hull_tolerance
+            )
+            self._hulls = {res: hull}
+        return self._hulls[res]
+
+    def _update_free(self) -> None:
+        """Nodes whose eta may change: near the hull (everywhere without one)."""
+        self._free = None
+        if self._hull_fit() and self.cfg.free_cells >= 0:
+            hull = self._hull(self.field.values.shape[0])
+            if hull.found:
+                self._free = hull.dilated(self.cfg.free_cells).ravel()
+
+    def _fill_hull(self) -> None:
+        """Fill the hull with the index that gives the lowest loss on a fixed batch."""
+        hull = self._hull(self.field.values.shape[0])
+        if not hull.found:
+            self.stream.write("start: no refraction mask agrees across views; eta = 1\n")
+            return
+        occ = hull.occupancy.ravel()
+        rng = np.random.default_rng([self.cfg.seed, 7])
+        idx = rng.integers(0, len(self.origins), size=min(self.cfg.batch, len(self.origins)))
+        hi = self.ds.scene.eta_range[1]
+        trials = []
+        for eta in [1.0, *np.linspace(1.0, hi, 9)[1:]]:
+            self.params[:] = 1.0 + (eta - 1.0) * occ
+            self.field.set_data(self.params)
+            self.engine.tracer.upload_field()
+            r = self.engine.tracer.trace(self.origins[idx], self.dirs[idx])
+            loss = photometric_loss(
+                self._env_full, r.direction, self.rgb[idx], space=self.cfg.loss
+            )[0]
+            trials.append((loss, float(eta)))
+        loss, eta = min(trials)
+        self.params[:] = 1.0 + (eta - 1.0) * occ
+        self.field.set_data(self.params)
+        self.engine.tracer.upload_field()
+        self.init_info = {
+            "hull_fraction": float((occ > 0.5).mean()),
+            "mask_fraction": hull.mask_fraction,
+            "eta": eta,
+            "loss": loss,
+            "loss_empty": trials[0][0],
+        }
+        self.stream.write(
+            f"start: visual hull {100 * self.init_info['hull_fraction']:.2f}% of the box "
+            f"filled with eta {eta:.3f} (loss {loss:.4g}; empty {trials[0][0]:.4g})\n"
+        )
+        (self.out / "init.json").write_text(json.dumps(self.init_info, indent=2))
 
     def _maybe_regrid(self) -> None:
         if self.cfg.field != "voxel":
@@ -314,12 +399,16 @@ class Fit:
         grad = r.grad + self.cfg.reg * greg
         if self.cfg.sparsity and self.cfg.field == "voxel":
             grad = grad + self.cfg.sparsity * (self.params > 1.0)
+        if self._free is not None:
+            grad[~self._free] = 0.0
         if not np.all(np.isfinite(grad)):
             raise FloatingPointError("non-finite gradient")
         decay = self.cfg.lr_final ** (self.it / self.cfg.iterations)
         self.adam.step(self.params, grad, lr_scale=decay)
         if self.cfg.field == "voxel":  # keep node values physical: 1 <= eta <= eta_max
             np.clip(self.params, 1.0, self.eta_max, out=self.params)
+            if self._free is not None:
+                self.params[~self._free] = 1.0
         self.field.set_data(self.params)
         self.engine.tracer.upload_field()
         dt = time.perf_counter() - t0

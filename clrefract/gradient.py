@@ -54,6 +54,7 @@ class GradientEngine:
         queues: int = 1,
         max_steps: int | None = None,
         loss_space: str = "srgb",
+        checkpoint_every: int = 0,
     ):
         self.runtime = runtime or Runtime(queues=queues)
         if len(self.runtime.queues) < queues:
@@ -71,6 +72,10 @@ class GradientEngine:
             adjoint=True,
         )
         self.field, self.box, self.loss_space = field, box, loss_space
+        if checkpoint_every < 0:
+            raise ClrefractError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
+        # 0: constant memory; C > 0: forward states kept every C steps bound the drift
+        self.checkpoint_every = int(checkpoint_every)
         self._k_adjoint = self.tracer.kernels.adjoint_rays
         self.n_shared = int(getattr(field, "n_shared", 0))
 
@@ -93,10 +98,12 @@ class GradientEngine:
             outs = [np.empty(size, tr.dtype) for _ in range(6)]
             status, steps = np.empty(size, np.int32), np.empty(size, np.int32)
             last = [np.empty(size, tr.dtype) for _ in range(3)]
+            ckpt = tr.checkpoint_buffer(size, self.checkpoint_every)
             args = [tr.dtype(tr.step), np.int32(tr.max_steps), *o, *d]
             args += [Out(a) for a in outs + [status, steps] + last]
+            args += [np.int32(self.checkpoint_every), ckpt]
             tr._enqueue(tr._k_trace, size // tr.lanes, args, q)
-            pending.append((idx, outs, status, steps, last))
+            pending.append((idx, outs, status, steps, last, ckpt))
         for q in self.queues:
             q.finish()
         return pending
@@ -110,7 +117,7 @@ class GradientEngine:
         vel = np.empty((n, 3))
         status = np.empty(n, np.int32)
         steps = 0
-        for idx, outs, st, sp, _ in pending:
+        for idx, outs, st, sp, *_ in pending:
             m = len(idx)
             vel[idx] = np.stack(outs[3:6], axis=1)[:m]
             status[idx] = st[:m]
@@ -123,7 +130,7 @@ class GradientEngine:
 
         n_par = len(self.field.data())
         jobs = []
-        for q, (idx, outs, st, sp, last) in zip(self.queues, pending):
+        for q, (idx, outs, st, sp, last, ckpt) in zip(self.queues, pending):
             size, m = len(st), len(idx)
             mu_cols = []
             for k in range(3):
@@ -143,6 +150,9 @@ class GradientEngine:
                 InOut(grad),
                 Out(partial),
                 *[Out(b) for b in back],
+                np.int32(tr.max_steps),
+                np.int32(self.checkpoint_every),
+                ckpt,
             ]
             tr._enqueue(self._k_adjoint, items, args, q)
             jobs.append((idx, grad, partial, back, items))

@@ -72,14 +72,16 @@ def plot_slices(field, box, out_png: Path, truth=None, vmax: float | None = None
     plt.close(fig)
 
 
-def render_test_views(fit, out_dir: Path, limit: int = -1) -> list[dict]:
-    """Render the dataset's test views with the fitted field; PSNR and SSIM per view."""
+def render_test_views(fit, out_dir: Path | None, limit: int = -1, field=None) -> list[dict]:
+    """Render the dataset's test views with the fitted field (or `field`); PSNR and SSIM per
+    view. Images go to out_dir (rendering beside the photograph) unless it is None."""
     from .render import render_camera
     from .tracer import Tracer
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
     tracer = Tracer(
-        fit.field,
+        field or fit.field,
         fit.box,
         step=fit.cfg.step,
         precision=fit.cfg.precision,
@@ -94,43 +96,78 @@ def render_test_views(fit, out_dir: Path, limit: int = -1) -> list[dict]:
         ref = fit.ds.image(cam)
         psnr, ssim = psnr_ssim(img, ref)
         stem = Path(cam.file_path).name or cam.name
-        write_exr_rgb(out_dir / f"{stem}.exr", img)
-        write_png_srgb(out_dir / f"{stem}.png", np.concatenate([img, ref], axis=1))
+        if out_dir is not None:
+            write_exr_rgb(out_dir / f"{stem}.exr", img)
+            write_png_srgb(out_dir / f"{stem}.png", np.concatenate([img, ref], axis=1))
         rows.append({"view": stem, "psnr": psnr, "ssim": ssim})
     return rows
 
 
-def write_fit_report(fit) -> dict:
+def scene_truth(ds):
+    """The analytic object of a synthetic dataset, or None."""
     from .fields import field_from_dict
 
+    if not ds.scene.object:
+        return None
+    try:
+        return field_from_dict(ds.scene.object)
+    except Exception:  # noqa: BLE001 - a user's scene may describe objects we cannot draw
+        return None
+
+
+def eta_rmse(field, truth, box, res: int = 48) -> float:
+    axes = [np.linspace(box.lo[k], box.hi[k], res) for k in range(3)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    return float(np.sqrt(np.mean((field.eval(g)[0] - truth.eval(g)[0]) ** 2)))
+
+
+def score_field(fit, field=None, out_dir: Path | None = None) -> dict:
+    """Test-view PSNR and SSIM, eta RMSE and chamfer distance of a field (default: the
+    fit's) on the fit's dataset."""
+    field = field or fit.field
+    views = render_test_views(fit, out_dir, fit.cfg.test_views, field=field)
+    result = {
+        "test_psnr": float(np.mean([v["psnr"] for v in views])) if views else None,
+        "test_ssim": float(np.mean([v["ssim"] for v in views])) if views else None,
+        "views": views,
+    }
+    truth = scene_truth(fit.ds)
+    if truth is not None:
+        result["eta_rmse"] = eta_rmse(field, truth, fit.box)
+    chamfer = surface_chamfer(field, fit.ds)
+    if chamfer is not None:  # inf: eta never reaches the level, there is no surface
+        result["chamfer_mm"] = chamfer if np.isfinite(chamfer) else None
+    return result
+
+
+def surface_chamfer(field, ds) -> float | None:
+    """Chamfer distance (mm) from the surface of eta halfway between 1 and the scene's upper
+    index to the dataset's ground-truth surface; None without one (or without a crossing:
+    then the surface is missing, and inf is returned)."""
+    from .metrics import chamfer_distance, eta_surface
+    from .synth import read_ply
+
+    gt = ds.root / ds.scene.ground_truth.get("surface", "gt_surface.ply")
+    if not gt.is_file():
+        return None
+    level = 1 + (ds.scene.eta_range[1] - 1) / 2
+    mesh = eta_surface(field, ds.box, level)
+    if mesh is None:
+        return float("inf")
+    return chamfer_distance(mesh, read_ply(gt))
+
+
+def write_fit_report(fit) -> dict:
     out = fit.out
     plot_metrics(out / "metrics.jsonl", out / "loss.png")
-    truth = None
-    if fit.ds.scene.object:
-        try:
-            truth = field_from_dict(fit.ds.scene.object)
-        except Exception:  # noqa: BLE001 - a user's scene may describe objects we cannot draw
-            truth = None
-    plot_slices(fit.field, fit.box, out / "slices.png", truth=truth)
-    views = render_test_views(fit, out / "test", fit.cfg.test_views)
+    plot_slices(fit.field, fit.box, out / "slices.png", truth=scene_truth(fit.ds))
     rows = [json.loads(ln) for ln in (out / "metrics.jsonl").read_text().splitlines() if ln]
     result = {
         "iterations": fit.it,
         "train_seconds": float(sum(r["seconds"] for r in rows)),
         "final_loss": rows[-1]["loss"] if rows else None,
-        "test_psnr": float(np.mean([v["psnr"] for v in views])) if views else None,
-        "test_ssim": float(np.mean([v["ssim"] for v in views])) if views else None,
-        "views": views,
+        **score_field(fit, out_dir=out / "test"),
     }
-    if truth is not None:
-        from .fields.base import Box
-
-        box: Box = fit.box
-        g = np.stack(
-            np.meshgrid(*[np.linspace(box.lo[k], box.hi[k], 48) for k in range(3)], indexing="ij"),
-            -1,
-        ).reshape(-1, 3)
-        result["eta_rmse"] = float(np.sqrt(np.mean((fit.field.eval(g)[0] - truth.eval(g)[0]) ** 2)))
     with atomic_path(out / "results.json", suffix=".json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))
     return result

@@ -92,13 +92,25 @@ class Tracer:
             if adj is None:
                 raise ClrefractError(
                     f"field {field.kind!r} has no backward pass yet, so it cannot be fitted "
-                    "(fitting supports: voxel)")
+                    "(fitting supports: voxel)"
+                )
             sources = ["common.h", field.source, adj, "trace.cl", "adjoint.cl"]
         self.kernels = prg = self.runtime.build(sources, defines, precision)
         self._k_trace = prg.trace_rays
         self._k_propagate = prg.propagate_rays
         self._k_eval = prg.eval_field
+        cl = self.runtime.cl
+        self._no_ckpt = cl.Buffer(self.runtime.context, cl.mem_flags.READ_WRITE, 64)
         self.upload_field()
+
+    def checkpoint_buffer(self, n_padded: int, every: int):
+        """Device buffer for the states the forward pass keeps every `every` steps."""
+        if every <= 0:
+            return self._no_ckpt
+        cl = self.runtime.cl
+        slots = max(self.max_steps // every, 1)
+        nbytes = slots * 6 * n_padded * np.dtype(self.dtype).itemsize
+        return cl.Buffer(self.runtime.context, cl.mem_flags.READ_WRITE, nbytes)
 
     def upload_field(self) -> None:
         """Copy the field's current parameters to the device (after the field changed)."""
@@ -173,7 +185,8 @@ class Tracer:
         last = [np.empty(m, self.dtype) for _ in range(3)]
         outs = [Out(a) for a in p + v + [status, steps] + last]
         scal = [self.dtype(self.step), np.int32(self.max_steps)]
-        self._run(self._k_trace, m // self.lanes, scal + o + d + outs)
+        no_ckpt = [np.int32(0), self._no_ckpt]
+        self._run(self._k_trace, m // self.lanes, scal + o + d + outs + no_ckpt)
         vel = np.stack(v, axis=1)[:n].astype(np.float64)
         speed = np.linalg.norm(vel, axis=1)
         return TraceResult(

@@ -9,7 +9,13 @@
  * gradient dJ/dtheta = int mu . dD/dtheta dsigma is integrated by Simpson's rule on the
  * step's stages (sigma, sigma - h/2, sigma - h): each stage splats its integrand with weight
  * h/6, 4h/6, h/6. The field gives field_adjoint(): eta, grad eta, Hess(eta) mu, and the
- * splat (see voxel_adjoint.cl). */
+ * splat (see voxel_adjoint.cl).
+ *
+ * The re-integrated ray drifts from the forward one (RK steps are not time-reversible), and
+ * through sharp interfaces the drift grows fast. With ckpt_every = C > 0 the ray's (x, v) is
+ * reset to the forward pass's checkpoint every C steps: drift stays that of C steps, for
+ * memory O(max_steps / C) per ray. Lanes are aligned on the forward step index (a lane with
+ * fewer steps starts later), so that every lane meets its checkpoints together. */
 
 /* Fields accumulate in private memory what they can (a voxel grid: the cell a ray is
  * in; shared MLP weights: the whole ray) and reach global memory when that changes or at
@@ -44,8 +50,10 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
                            __global const REAL *mux, __global const REAL *muy,
                            __global const REAL *muz, __global REAL *grad,
                            __global REAL *partial, __global REAL *bx, __global REAL *by,
-                           __global REAL *bz) {
+                           __global REAL *bz, const int max_steps, const int ckpt_every,
+                           __global const REAL *ckpt) {
     const size_t i = get_global_id(0);
+    const size_t col = get_global_size(0) * LANES;
     /* y = (x, mu), y' = (v, nu) with nu = -lambda; the step k = -h runs backwards */
     realv x = VLOAD(i, pxk), y = VLOAD(i, pyk), z = VLOAD(i, pzk);
     realv vx = VLOAD(i, qxk), vy = VLOAD(i, qyk), vz = VLOAD(i, qzk);
@@ -54,8 +62,11 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
     realv n = TO_REALV(VLOAD(i, steps));
     FIELD_ACC_DECL
     const REAL k = -h, k2 = (REAL)0.5 * k, k8 = (REAL)0.125 * k, s6 = (REAL)1 / (REAL)6;
-    for (int it = 0; ANY(RV(it) < n); ++it) {
-        maskv active = RV(it) < n;
+    /* s: forward index of the state the step starts from */
+    for (int s = max_steps; s > 0; --s) {
+        maskv active = RV(s) <= n;
+        if (!ANY(active))
+            continue;
         realv w = SEL(RV(0), RV(h * s6), active);
         realv ax, ay, az, amx, amy, amz, bx_, by_, bz_, bmx, bmy, bmz;
         realv cx, cy, cz, cmx, cmy, cmz;
@@ -78,6 +89,15 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
         ADV(x, vx, ax, bx_, cx); ADV(y, vy, ay, by_, cy); ADV(z, vz, az, bz_, cz);
         ADV(mx, nx, amx, bmx, cmx); ADV(my, ny, amy, bmy, cmy); ADV(mz, nz, amz, bmz, cmz);
 #undef ADV
+        if (ckpt_every > 0 && (s - 1) % ckpt_every == 0 && s > 1) {
+            __global const REAL *c = ckpt + (size_t)((s - 1) / ckpt_every - 1) * 6 * col;
+            x = SEL(x, VLOAD(i, c), active);
+            y = SEL(y, VLOAD(i, c + col), active);
+            z = SEL(z, VLOAD(i, c + 2 * col), active);
+            vx = SEL(vx, VLOAD(i, c + 3 * col), active);
+            vy = SEL(vy, VLOAD(i, c + 4 * col), active);
+            vz = SEL(vz, VLOAD(i, c + 5 * col), active);
+        }
     }
     VSTORE(x, i, bx); VSTORE(y, i, by); VSTORE(z, i, bz);
     FIELD_ACC_FLUSH(grad, partial, i);

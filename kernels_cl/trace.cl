@@ -79,7 +79,9 @@ inline realv box_exit_t(realv x, realv y, realv z, realv dx, realv dy, realv dz)
 
 /* Trace rays: straight to the box, integrate inside, straight out of the exit face.
  * Outputs the exit point, the exit v (direction times |v|), a status, the step count and
- * the last state inside the box (where the backward pass starts).
+ * the last state inside the box (where the backward pass starts). With ckpt_every = C > 0,
+ * the state after every C-th step goes to slot (k / C - 1) of ckpt (6 columns of the padded
+ * ray count per slot, max_steps / C slots): the backward pass restarts from them.
  * A step that leaves the box is undone and replaced by a straight flight from its start:
  * exact because fields are 1 with zero gradient within MARGIN (> step) of the walls. */
 __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
@@ -89,8 +91,9 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
                          __global REAL *py, __global REAL *pz, __global REAL *qx,
                          __global REAL *qy, __global REAL *qz, __global int *status,
                          __global int *steps, __global REAL *lx, __global REAL *ly,
-                         __global REAL *lz) {
+                         __global REAL *lz, const int ckpt_every, __global REAL *ckpt) {
     const size_t i = get_global_id(0);
+    const size_t col = get_global_size(0) * LANES;
     realv x = VLOAD(i, ox), y = VLOAD(i, oy), z = VLOAD(i, oz);
     realv ux = VLOAD(i, dx), uy = VLOAD(i, dy), uz = VLOAD(i, dz);
     realv un = rsqrt(ux * ux + uy * uy + uz * uz);
@@ -126,6 +129,11 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
         st = SEL(st, RV(ST_NONFINITE), active && bad);
         n += SEL(RV(0), RV(1), go);
         active = go;
+        if (ckpt_every > 0 && (k + 1) % ckpt_every == 0) {
+            __global REAL *c = ckpt + (size_t)((k + 1) / ckpt_every - 1) * 6 * col;
+            VSTORE(x, i, c); VSTORE(y, i, c + col); VSTORE(z, i, c + 2 * col);
+            VSTORE(vx, i, c + 3 * col); VSTORE(vy, i, c + 4 * col); VSTORE(vz, i, c + 5 * col);
+        }
     }
     st = SEL(st, RV(ST_TRAPPED), active);
 

@@ -30,6 +30,7 @@ def _cfg(**kw):
         step=2.0,
         lr=0.003,
         env_blur=0.0,
+        init="empty",
         checkpoint_every=10,
         test_views=1,
         precision="float64",

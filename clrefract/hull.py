@@ -1,0 +1,131 @@
+"""Where the object can be: refraction masks and their visual hull, to start a fit.
+
+A pixel whose ray passes only through air sees the environment straight along the ray.
+Where the photograph differs from that straight lookup, the ray crossed the object (the
+environment has detail everywhere). Carving the box with these masks from every view gives
+the visual hull: no refraction happens outside it. A fit that starts from the hull filled
+with one index, chosen by a line search on the loss, and updates only the hull, avoids the
+local minima of an empty start (a solid must reach a large index before it beats empty
+space) and the streaks a fit otherwise leaves in empty space.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from .cameras import Camera
+from .envmap import EnvMap
+from .fields.base import Box
+from .loss import srgb
+
+
+@dataclass
+class Hull:
+    occupancy: np.ndarray  # (n, n, n) float in [0, 1] on the voxel nodes, 1 inside
+    mask_fraction: float  # mean fraction of training pixels marked as refracting
+
+    @property
+    def found(self) -> bool:
+        """At least a few nodes inside: faint media (gas) mark too few pixels to carve."""
+        return int((self.occupancy > 0.5).sum()) >= 8
+
+    def dilated(self, cells: int) -> np.ndarray:
+        """Nodes within `cells` of the hull (where a fit may change eta)."""
+        inside = self.occupancy > 0.5
+        if cells <= 0 or not inside.any():
+            return inside
+        return ndimage.binary_dilation(inside, iterations=cells)
+
+
+def refraction_mask(
+    cam: Camera, image: np.ndarray, env: EnvMap, threshold: float = 0.05
+) -> np.ndarray:
+    """(H, W) bool: pixels whose photograph differs from the environment seen straight."""
+    _, d = cam.rays()
+    straight = env.lookup(d).reshape(cam.height, cam.width, 3)
+    diff = np.abs(srgb(image)[0] - srgb(straight)[0]).max(axis=-1)
+    mask = ndimage.median_filter(diff, size=3) > threshold
+    return ndimage.binary_closing(mask, iterations=2)
+
+
+def mask_distance(mask: np.ndarray) -> np.ndarray:
+    """Signed distance to the mask's boundary in pixels, positive inside."""
+    inside = ndimage.distance_transform_edt(mask)
+    outside = ndimage.distance_transform_edt(~mask)
+    return np.where(mask, inside - 0.5, 0.5 - outside)
+
+
+def project(cam: Camera, pts: np.ndarray):
+    """Pixel row, column (continuous, pixel centres at +0.5) and depth of world points (n, 3);
+    depth <= 0 behind the camera."""
+    w2c = np.linalg.inv(cam.c2w)
+    p = pts @ w2c[:3, :3].T + w2c[:3, 3]
+    depth = -p[:, 2]
+    z = np.where(depth > 1e-9, depth, 1.0)
+    col = cam.cx + cam.fl_x * p[:, 0] / z
+    row = cam.cy - cam.fl_y * p[:, 1] / z
+    return row, col, depth
+
+
+def hull_distance(
+    box: Box,
+    cameras: list[Camera],
+    masks: list[np.ndarray],
+    pts: np.ndarray,
+    tolerance: float = 0.2,
+    chunk: int = 65536,
+):
+    """Signed distance (mm, positive inside) of points to the visual hull: the distance to
+    each view's silhouette cone, read bilinearly from the mask's distance transform at the
+    point's depth, then the smallest over the views but for a `tolerance` fraction of them.
+    Those few may have holes: a ray through two parallel faces (a prism seen along its axis)
+    leaves undeviated, and looks like air. Points no view sees get -inf."""
+    dists = [mask_distance(m) for m in masks]
+    out = np.empty(len(pts))
+    for a in range(0, len(pts), chunk):
+        p = pts[a : a + chunk]
+        sd = np.full((len(cameras), len(p)), np.inf)
+        for v, (cam, dist) in enumerate(zip(cameras, dists)):
+            row, col, depth = project(cam, p)
+            ok = (depth > 0) & (row >= 0) & (row <= cam.height) & (col >= 0) & (col <= cam.width)
+            if not ok.any():
+                continue
+            # pixel centres sit at +0.5; map_coordinates samples centres at integers
+            px = ndimage.map_coordinates(
+                dist, [row[ok] - 0.5, col[ok] - 0.5], order=1, mode="nearest"
+            )
+            sd[v, ok] = px * depth[ok] / cam.fl_x
+        seen = np.isfinite(sd).sum(axis=0)
+        sd.sort(axis=0)
+        k = np.floor(tolerance * seen).astype(np.int64)
+        val = np.take_along_axis(sd, k[None], axis=0)[0]
+        out[a : a + chunk] = np.where(seen > 0, val, -np.inf)
+    return out
+
+
+def visual_hull(
+    box: Box,
+    cameras: list[Camera],
+    masks: list[np.ndarray],
+    res: int,
+    width: float = 0.0,
+    tolerance: float = 0.2,
+) -> Hull:
+    """Occupancy of a res^3 node grid over the box: a smooth step of the hull's signed
+    distance across `width` mm (default: one cell), so that the surface is smooth."""
+    lo, hi = np.asarray(box.lo), np.asarray(box.hi)
+    axes = [np.linspace(lo[a], hi[a], res) for a in range(3)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    sd = hull_distance(box, cameras, masks, pts, tolerance)
+    # the box margin is air by construction
+    m = box.margin
+    wall = np.min(np.minimum(pts - lo, hi - pts), axis=1) - 2 * m
+    sd = np.minimum(sd, wall)
+    w = width or float(np.max((hi - lo) / (res - 1)))
+    t = np.clip(sd / w + 0.5, 0.0, 1.0)
+    occ = t * t * t * (t * (t * 6 - 15) + 10)
+    frac = float(np.mean([mk.mean() for mk in masks])) if masks else 0.0
+    return Hull(occ.reshape(res, res, res), frac)

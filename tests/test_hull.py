@@ -1,0 +1,74 @@
+"""Refraction masks and the visual hull that starts a fit on a solid object."""
+
+import numpy as np
+import pytest
+
+from clrefract.dataset import Dataset
+from clrefract.fit import Fit, load_config
+from clrefract.hull import hull_distance, mask_distance, refraction_mask, visual_hull
+from clrefract.synth import MakeOptions, make_dataset
+
+
+@pytest.fixture(scope="module")
+def sphere_dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sphere")
+    make_dataset("sphere", out, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
+    return out
+
+
+def test_mask_distance_is_signed_pixels():
+    m = np.zeros((9, 9), bool)
+    m[2:7, 2:7] = True
+    d = mask_distance(m)
+    assert d[4, 4] == pytest.approx(2.5) and d[2, 4] == pytest.approx(0.5)
+    assert d[0, 4] == pytest.approx(-1.5)
+
+
+def test_sphere_masks_and_hull_match_the_silhouette(sphere_dataset):
+    ds = Dataset(sphere_dataset)
+    env = ds.envmap()
+    masks = [refraction_mask(c, ds.image(c), env) for c in ds.train]
+    # the sphere (radius 20 mm at 200 mm, 30 degree view) covers pi (20/53.6)^2 / 4 of a view
+    expected = np.pi * (20 / (200 * np.tan(np.radians(15)))) ** 2 / 4
+    assert np.mean([m.mean() for m in masks]) == pytest.approx(expected, rel=0.15)
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-35, 35, (2000, 3))
+    sd = hull_distance(ds.box, ds.train, masks, pts)
+    r = np.linalg.norm(pts, axis=1)
+    near = np.abs(r - 20) < 8
+    # a 48-pixel view is 2.2 mm per pixel at the sphere: the hull is within about a pixel
+    assert np.abs(sd[near] - (20 - r[near])).max() < 3.0
+    hull = visual_hull(ds.box, ds.train, masks, 33)
+    ax = np.linspace(-50, 50, 33)
+    g = np.linalg.norm(np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1), axis=-1)
+    inside = hull.occupancy > 0.5
+    assert g[inside].max() < 23 and g[~inside].min() > 17
+
+
+def test_fit_starts_from_the_hull_filled_with_the_right_index(sphere_dataset, tmp_path):
+    cfg = load_config(
+        None, dict(iterations=1, res=40, res_schedule=(), step=1.0, batch=4096, test_views=1)
+    )
+    (tmp_path / "run").mkdir()
+    fit = Fit(sphere_dataset, tmp_path / "run", cfg)
+    fit.start()
+    info = fit.init_info
+    assert 1.3 <= info["eta"] <= 1.6, info
+    assert info["loss"] < 0.9 * info["loss_empty"], info
+    # only the nodes near the hull may change
+    assert 0.01 < fit._free.mean() < 0.2
+    m = fit.step()
+    assert np.all(fit.params[~fit._free] == 1.0) and np.isfinite(m["loss"])
+
+
+def test_faint_media_carve_nothing(tmp_path):
+    from clrefract.fields.analytic import Blobs
+
+    blob = Blobs(centers=[[0, 0, 0]], amplitudes=[2e-4], sigmas=[10])
+    make_dataset(
+        "blob", tmp_path, MakeOptions(views=6, res=24, env_width=256, volume_res=12), obj=blob
+    )
+    ds = Dataset(tmp_path)
+    env = ds.envmap()
+    masks = [refraction_mask(c, ds.image(c), env) for c in ds.train]
+    assert not visual_hull(ds.box, ds.train, masks, 16).found

@@ -1,0 +1,43 @@
+"""Benchmark metrics: PSNR/SSIM conventions and the chamfer distance between surfaces."""
+
+import numpy as np
+import pytest
+
+from clrefract.fields.analytic import Sphere
+from clrefract.fields.base import Box
+from clrefract.fields.voxel import VoxelGrid
+from clrefract.metrics import chamfer_distance, eta_surface, psnr_ssim, sample_surface
+from clrefract.synth import surface_mesh
+
+
+def test_surface_samples_are_uniform_by_area():
+    verts, faces = surface_mesh(Sphere(radius=20.0, eta=1.5, width=1.0), spacing=1.0)
+    p = sample_surface(verts, faces, 20000)
+    assert np.abs(np.linalg.norm(p, axis=1) - 20).max() < 0.2
+    # equal-area bands of a sphere hold equal shares of the samples (Archimedes)
+    counts = np.histogram(p[:, 2], bins=4, range=(-20, 20))[0]
+    assert counts.min() > 0.9 * counts.max()
+
+
+def test_chamfer_of_concentric_spheres_is_their_gap():
+    a = surface_mesh(Sphere(radius=20.0, eta=1.5, width=1.0), spacing=0.5)
+    b = surface_mesh(Sphere(radius=21.0, eta=1.5, width=1.0), spacing=0.5)
+    assert chamfer_distance(a, b, 50000) == pytest.approx(1.0, abs=0.05)
+    # two independent samplings of one surface: the Poisson spacing 0.5 / sqrt(density)
+    assert chamfer_distance(a, a, 50000) < 0.2
+
+
+def test_eta_surface_of_a_grid_finds_the_sphere():
+    sph = Sphere(radius=20.0, eta=1.5, width=1.0)
+    grid = VoxelGrid.from_field(sph, Box(), 64)
+    mesh = eta_surface(grid, Box(), 1.25, res=96)
+    assert chamfer_distance(mesh, surface_mesh(sph, spacing=0.5), 50000) < 0.5
+    assert eta_surface(VoxelGrid(np.ones((8, 8, 8)), Box()), Box(), 1.25, res=16) is None
+
+
+def test_psnr_ssim_of_identical_and_shifted_images():
+    rng = np.random.default_rng(0)
+    img = rng.random((32, 32, 3))
+    assert psnr_ssim(img + 1e-9, img)[1] == pytest.approx(1.0)
+    p, s = psnr_ssim(img + 0.01, img)
+    assert 30 < p < 60 and s < 1

@@ -1,0 +1,117 @@
+"""Reconstruction benchmark: fit the sphere, the prism and the drop on the quick protocol
+(100 views, 80 for training, 20 held out) and score the test views, beside reference points
+measured with the same renderer and metrics:
+
+- empty: eta = 1 everywhere (what doing nothing scores);
+- start: the fit's starting point (the visual hull filled by line search, no gradient step);
+- fit: after the iterations, with its wall time;
+- ceiling: the ground truth sampled on the same voxel grid (the best this grid can do).
+
+    python tools/bench_reconstruction.py [--scenes sphere,prism,drop] [--res 128]
+        [--grid 64] [--iterations 300] [--json bench_results/reconstruction.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def dataset(scene: str, res: int, root: Path) -> Path:
+    from clrefract.synth import MakeOptions, make_dataset
+
+    out = root / f"{scene}_{res}"
+    if not (out / "scene.json").is_file():
+        make_dataset(scene, out, MakeOptions(views=100, res=res))
+    return out
+
+
+def bench_scene(scene: str, args) -> dict:
+    from clrefract.fields.voxel import VoxelGrid
+    from clrefract.fit import Fit, load_config, run_fit
+    from clrefract.report import scene_truth, score_field
+
+    data = dataset(scene, args.res, Path(args.data))
+    cfg = load_config(
+        Path(args.config) if args.config else None,
+        dict(
+            res=args.grid,
+            res_schedule=(),
+            iterations=args.iterations,
+            batch=args.batch,
+            step=args.step,
+            lr=args.lr,
+        ),
+    )
+    row: dict = {"scene": scene, "res": args.res, "grid": args.grid}
+    probe = Fit(data, Path(args.runs) / f"{scene}_probe", cfg)
+    probe.out.mkdir(parents=True, exist_ok=True)
+    empty = VoxelGrid(np.ones((8, 8, 8)), probe.box)
+    row["empty"] = score_field(probe, empty)
+    truth = scene_truth(probe.ds)
+    ceiling = VoxelGrid.from_field(truth, probe.box, args.grid, eta_max=probe.eta_max)
+    row["ceiling"] = score_field(probe, ceiling)
+    t0 = time.perf_counter()
+    probe.start()
+    row["start"] = {**score_field(probe), "seconds": time.perf_counter() - t0}
+    run = Path(args.runs) / scene
+    if (run / "checkpoint.npz").exists():
+        import shutil
+
+        shutil.rmtree(run)
+    t0 = time.perf_counter()
+    res = run_fit(data, run, cfg)
+    row["fit"] = {**res, "seconds": time.perf_counter() - t0}
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="sphere,prism,drop")
+    ap.add_argument("--res", type=int, default=128, help="image size of the views")
+    ap.add_argument("--grid", type=int, default=64, help="voxel grid resolution")
+    ap.add_argument("--iterations", type=int, default=300)
+    ap.add_argument("--batch", type=int, default=8192)
+    ap.add_argument("--step", type=float, default=1.0)
+    ap.add_argument("--lr", type=float, default=2e-3)
+    ap.add_argument("--config", default="", help="a fit TOML applied under the flags above")
+    ap.add_argument("--data", default="bench_results/data")
+    ap.add_argument("--runs", default="bench_results/runs")
+    ap.add_argument("--json", default="bench_results/reconstruction.json")
+    args = ap.parse_args()
+
+    rows = []
+    for scene in args.scenes.split(","):
+        print(f"== {scene}", file=sys.stderr)
+        rows.append(bench_scene(scene.strip(), args))
+    head = (
+        f"{'scene':8} {'model':8} {'PSNR':>6} {'SSIM':>6} {'D_C mm':>7} {'eta RMSE':>9} {'time':>7}"
+    )
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        for model in ("empty", "start", "fit", "ceiling"):
+            m = r[model]
+            dc = m.get("chamfer_mm")
+            t = m.get("seconds")
+            print(
+                f"{r['scene']:8} {model:8} {m['test_psnr']:6.2f} {m['test_ssim']:6.3f} "
+                f"{'-' if dc is None else f'{dc:.2f}':>7} {m.get('eta_rmse', float('nan')):9.4f} "
+                f"{'' if t is None else f'{t:6.0f}s':>7}"
+            )
+    for r in rows:
+        for m in r.values():
+            if isinstance(m, dict):
+                m.pop("views", None)
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps({"args": vars(args), "scenes": rows}, indent=2))
+    print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
