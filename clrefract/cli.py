@@ -207,6 +207,8 @@ def _cmd_fit(args) -> int:
         for k in (
             "field",
             "res",
+            "interp",
+            "init",
             "iterations",
             "batch",
             "lr",
@@ -297,6 +299,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--field", choices=["voxel", "hashgrid"])
     p.add_argument("--res", type=int, help="voxel grid resolution")
+    p.add_argument("--interp", choices=["bspline", "smoothstep", "trilinear"], help="voxel weights")
+    p.add_argument(
+        "--init", choices=["hull", "empty"], help="start from the visual hull or eta = 1"
+    )
     p.add_argument("--levels", type=int, help="hash grid levels")
     p.add_argument("--log2-table", type=int, help="hash table size, log2")
     p.add_argument("--hidden", type=int, help="MLP width")

@@ -41,7 +41,7 @@ class FitConfig:
     # voxel grid: final resolution, and the coarse-to-fine resolutions before it
     res: int = 64
     res_schedule: tuple = (16, 32)
-    interp: str = "smoothstep"
+    interp: str = "bspline"  # C2 tricubic B-spline; "smoothstep" (C1) or "trilinear"
     # hash grid
     levels: int = 8
     features: int = 2
@@ -91,8 +91,10 @@ class FitConfig:
             raise ClrefractError(f"step must be positive, got {self.step}")
         if self.init not in ("hull", "empty"):
             raise ClrefractError(f"init must be 'hull' or 'empty', got {self.init!r}")
-        if self.interp not in ("smoothstep", "trilinear"):
-            raise ClrefractError(f"interp must be 'smoothstep' or 'trilinear', got {self.interp!r}")
+        if self.interp not in ("smoothstep", "trilinear", "bspline"):
+            raise ClrefractError(
+                f"interp must be 'bspline', 'smoothstep' or 'trilinear', got {self.interp!r}"
+            )
 
 
 def load_config(path: Path | None, overrides: dict) -> FitConfig:

@@ -26,7 +26,8 @@ class GradientResult:
     grad: np.ndarray  # (n_params,) dJ/dtheta
     radiance: np.ndarray  # (n, 3) rendered
     status: np.ndarray  # (n,)
-    drift: np.ndarray  # (n,) |re-integrated entry point - true entry point| in mm
+    drift: np.ndarray  # (n,) mm the re-integrated ray strayed: at the entry point, or at the
+    # forward checkpoints where it restarted
     steps: int
 
 
@@ -140,7 +141,7 @@ class GradientEngine:
             grad = np.zeros(n_par + 1, tr.dtype)
             items = size // tr.lanes
             partial = np.zeros(max(items * self.n_shared, 1), tr.dtype)
-            back = [np.empty(size, tr.dtype) for _ in range(3)]
+            back = [np.empty(size, tr.dtype) for _ in range(4)]  # x, y, z, checkpoint gap
             args = [
                 tr.dtype(tr.step),
                 *last,
@@ -148,16 +149,18 @@ class GradientEngine:
                 sp,
                 *mu_cols,
                 InOut(grad),
-                Out(partial),
-                *[Out(b) for b in back],
+                InOut(partial),  # the kernel accumulates in it
+                *[Out(b) for b in back[:3]],
                 np.int32(tr.max_steps),
                 np.int32(self.checkpoint_every),
                 ckpt,
+                Out(back[3]),
             ]
             tr._enqueue(self._k_adjoint, items, args, q)
             jobs.append((idx, grad, partial, back, items))
         total = np.zeros(n_par)
         back_pos = np.empty((n, 3))
+        gap = np.empty(n)
         for q, (idx, grad, partial, back, items) in zip(self.queues, jobs):
             q.finish()
             total += grad[:n_par]
@@ -166,9 +169,11 @@ class GradientEngine:
                 total[off : off + self.n_shared] += (
                     partial.reshape(items, self.n_shared).astype(np.float64).sum(0)
                 )
-            back_pos[idx] = np.stack(back, axis=1)[: len(idx)]
+            back_pos[idx] = np.stack(back[:3], axis=1)[: len(idx)]
+            gap[idx] = back[3][: len(idx)]
         entry = box_entry(self.box, origins, dirs)
-        drift = np.where(exited, np.linalg.norm(back_pos - entry, axis=1), 0.0)
+        drift = np.maximum(np.linalg.norm(back_pos - entry, axis=1), gap)
+        drift = np.where(exited, drift, 0.0)
         if not np.isfinite(loss) or not np.all(np.isfinite(total)):
             raise FloatingPointError("non-finite loss or gradient")
         return GradientResult(loss, total, rad, status, drift, steps)

@@ -58,14 +58,15 @@ def chamfer_distance(mesh_a, mesh_b, n: int = 100_000) -> float:
     return float(0.5 * (d_ab + d_ba))
 
 
-def eta_surface(field, box, level: float, res: int = 128):
+def eta_surface(field, box, level: float, res: int = 128, eval_fn=None):
     """Marching cubes of a field's eta at `level` on a res^3 grid over the box; None when
-    eta never crosses it."""
+    eta never crosses it. eval_fn(points) -> (eta, grad) defaults to the NumPy reference."""
     from skimage.measure import marching_cubes
 
+    eval_fn = eval_fn or field.eval
     axes = [np.linspace(box.lo[k], box.hi[k], res) for k in range(3)]
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    eta = np.concatenate([field.eval(pts[a : a + 262144])[0] for a in range(0, len(pts), 262144)])
+    eta = np.concatenate([eval_fn(pts[a : a + 262144])[0] for a in range(0, len(pts), 262144)])
     vol = eta.reshape(res, res, res)
     if not (vol.min() < level < vol.max()):
         return None

@@ -65,29 +65,37 @@ def plot_slices(field, box, out_png: Path, truth=None, vmax: float | None = None
     for r, (name, sl) in enumerate(rows):
         for k, (s, title) in enumerate(zip(sl, ("xy (z=0)", "xz (y=0)", "yz (x=0)"))):
             im = ax[r, k].imshow(s, origin="lower", extent=ext, vmin=1.0, vmax=vmax, cmap="viridis")
-            ax[r, k].set_title(f"{name}: eta, {title}")
+            ax[r, k].set_title(f"eta, {title}", fontsize=9)
+        ax[r, 0].set_ylabel(f"{name}\nmm")
     fig.colorbar(im, ax=ax, shrink=0.8, label="eta")
     with atomic_path(out_png, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=100)
     plt.close(fig)
 
 
-def render_test_views(fit, out_dir: Path | None, limit: int = -1, field=None) -> list[dict]:
-    """Render the dataset's test views with the fitted field (or `field`); PSNR and SSIM per
-    view. Images go to out_dir (rendering beside the photograph) unless it is None."""
-    from .render import render_camera
+def _tracer(fit, field):
     from .tracer import Tracer
 
-    if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    tracer = Tracer(
-        field or fit.field,
+    return Tracer(
+        field,
         fit.box,
         step=fit.cfg.step,
         precision=fit.cfg.precision,
         lanes=fit.cfg.lanes or None,
         runtime=fit.runtime,
     )
+
+
+def render_test_views(
+    fit, out_dir: Path | None, limit: int = -1, field=None, tracer=None
+) -> list[dict]:
+    """Render the dataset's test views with the fitted field (or `field`); PSNR and SSIM per
+    view. Images go to out_dir (rendering beside the photograph) unless it is None."""
+    from .render import render_camera
+
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    tracer = tracer or _tracer(fit, field or fit.field)
     env = fit.ds.envmap()
     cams = fit.ds.test if limit < 0 else fit.ds.test[:limit]
     rows = []
@@ -115,17 +123,19 @@ def scene_truth(ds):
         return None
 
 
-def eta_rmse(field, truth, box, res: int = 48) -> float:
+def eta_rmse(field, truth, box, res: int = 48, eval_fn=None) -> float:
     axes = [np.linspace(box.lo[k], box.hi[k], res) for k in range(3)]
     g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    return float(np.sqrt(np.mean((field.eval(g)[0] - truth.eval(g)[0]) ** 2)))
+    eta = (eval_fn or field.eval)(g)[0]
+    return float(np.sqrt(np.mean((eta - truth.eval(g)[0]) ** 2)))
 
 
 def score_field(fit, field=None, out_dir: Path | None = None) -> dict:
     """Test-view PSNR and SSIM, eta RMSE and chamfer distance of a field (default: the
     fit's) on the fit's dataset."""
     field = field or fit.field
-    views = render_test_views(fit, out_dir, fit.cfg.test_views, field=field)
+    tracer = _tracer(fit, field)  # evaluates eta on the device too: hash grids are slow in NumPy
+    views = render_test_views(fit, out_dir, fit.cfg.test_views, tracer=tracer)
     result = {
         "test_psnr": float(np.mean([v["psnr"] for v in views])) if views else None,
         "test_ssim": float(np.mean([v["ssim"] for v in views])) if views else None,
@@ -133,14 +143,14 @@ def score_field(fit, field=None, out_dir: Path | None = None) -> dict:
     }
     truth = scene_truth(fit.ds)
     if truth is not None:
-        result["eta_rmse"] = eta_rmse(field, truth, fit.box)
-    chamfer = surface_chamfer(field, fit.ds)
+        result["eta_rmse"] = eta_rmse(field, truth, fit.box, eval_fn=tracer.eval_field)
+    chamfer = surface_chamfer(field, fit.ds, eval_fn=tracer.eval_field)
     if chamfer is not None:  # inf: eta never reaches the level, there is no surface
         result["chamfer_mm"] = chamfer if np.isfinite(chamfer) else None
     return result
 
 
-def surface_chamfer(field, ds) -> float | None:
+def surface_chamfer(field, ds, eval_fn=None) -> float | None:
     """Chamfer distance (mm) from the surface of eta halfway between 1 and the scene's upper
     index to the dataset's ground-truth surface; None without one (or without a crossing:
     then the surface is missing, and inf is returned)."""
@@ -151,7 +161,7 @@ def surface_chamfer(field, ds) -> float | None:
     if not gt.is_file():
         return None
     level = 1 + (ds.scene.eta_range[1] - 1) / 2
-    mesh = eta_surface(field, ds.box, level)
+    mesh = eta_surface(field, ds.box, level, eval_fn=eval_fn)
     if mesh is None:
         return float("inf")
     return chamfer_distance(mesh, read_ply(gt))

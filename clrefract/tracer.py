@@ -92,7 +92,7 @@ class Tracer:
             if adj is None:
                 raise ClrefractError(
                     f"field {field.kind!r} has no backward pass yet, so it cannot be fitted "
-                    "(fitting supports: voxel)"
+                    "(fitting supports: voxel, hashgrid)"
                 )
             sources = ["common.h", field.source, adj, "trace.cl", "adjoint.cl"]
         self.kernels = prg = self.runtime.build(sources, defines, precision)

@@ -51,7 +51,7 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
                            __global const REAL *muz, __global REAL *grad,
                            __global REAL *partial, __global REAL *bx, __global REAL *by,
                            __global REAL *bz, const int max_steps, const int ckpt_every,
-                           __global const REAL *ckpt) {
+                           __global const REAL *ckpt, __global REAL *snap) {
     const size_t i = get_global_id(0);
     const size_t col = get_global_size(0) * LANES;
     /* y = (x, mu), y' = (v, nu) with nu = -lambda; the step k = -h runs backwards */
@@ -61,6 +61,7 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
     realv nx = RV(0), ny = RV(0), nz = RV(0);
     realv n = TO_REALV(VLOAD(i, steps));
     FIELD_ACC_DECL
+    realv worst = RV(0); /* largest distance from a checkpoint when the ray reached it */
     const REAL k = -h, k2 = (REAL)0.5 * k, k8 = (REAL)0.125 * k, s6 = (REAL)1 / (REAL)6;
     /* s: forward index of the state the step starts from */
     for (int s = max_steps; s > 0; --s) {
@@ -91,14 +92,17 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
 #undef ADV
         if (ckpt_every > 0 && (s - 1) % ckpt_every == 0 && s > 1) {
             __global const REAL *c = ckpt + (size_t)((s - 1) / ckpt_every - 1) * 6 * col;
-            x = SEL(x, VLOAD(i, c), active);
-            y = SEL(y, VLOAD(i, c + col), active);
-            z = SEL(z, VLOAD(i, c + 2 * col), active);
+            realv cx_ = VLOAD(i, c), cy_ = VLOAD(i, c + col), cz_ = VLOAD(i, c + 2 * col);
+            realv ex = x - cx_, ey = y - cy_, ez = z - cz_;
+            worst = SEL(worst, fmax(worst, sqrt(ex * ex + ey * ey + ez * ez)), active);
+            x = SEL(x, cx_, active);
+            y = SEL(y, cy_, active);
+            z = SEL(z, cz_, active);
             vx = SEL(vx, VLOAD(i, c + 3 * col), active);
             vy = SEL(vy, VLOAD(i, c + 4 * col), active);
             vz = SEL(vz, VLOAD(i, c + 5 * col), active);
         }
     }
-    VSTORE(x, i, bx); VSTORE(y, i, by); VSTORE(z, i, bz);
+    VSTORE(x, i, bx); VSTORE(y, i, by); VSTORE(z, i, bz); VSTORE(worst, i, snap);
     FIELD_ACC_FLUSH(grad, partial, i);
 }

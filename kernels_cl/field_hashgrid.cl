@@ -68,10 +68,53 @@ HG_INLINE hg_uintv hg_axis(realv u, realv inside, REAL n, REAL scale, realv *s, 
     return HG_AS_UINTV(c);
 }
 
+/* Table indices of the 8 corners of cell (i, j, k) of level l for the LANES points, corner
+ * c = 4a + 2b + d (a b d = low/high along x y z) at idx[c * LANES + lane]. */
+HG_INLINE void hg_indices(__global const REAL *restrict fp, const int l, const REAL n,
+                          hg_uintv i, hg_uintv j, hg_uintv k, uint *idx) {
+    if (fp[1 + HG_LEVELS + l] != (REAL)0) { /* dense */
+        const uint s1 = (uint)n + 1u, s2 = s1 * s1;
+        hg_uintv base = (i * s1 + j) * s1 + k;
+        VSTORE(base, 0, idx);
+        VSTORE(base + 1u, 1, idx);
+        VSTORE(base + s1, 2, idx);
+        VSTORE(base + (s1 + 1u), 3, idx);
+        VSTORE(base + s2, 4, idx);
+        VSTORE(base + (s2 + 1u), 5, idx);
+        VSTORE(base + (s2 + s1), 6, idx);
+        VSTORE(base + (s2 + s1 + 1u), 7, idx);
+    } else {
+        const uint m = (uint)(HG_T - 1);
+        hg_uintv hx1 = i + 1u;
+        hg_uintv hy0 = j * HG_PRIME_Y, hy1 = hy0 + HG_PRIME_Y;
+        hg_uintv hz0 = k * HG_PRIME_Z, hz1 = hz0 + HG_PRIME_Z;
+        VSTORE((i ^ hy0 ^ hz0) & m, 0, idx);
+        VSTORE((i ^ hy0 ^ hz1) & m, 1, idx);
+        VSTORE((i ^ hy1 ^ hz0) & m, 2, idx);
+        VSTORE((i ^ hy1 ^ hz1) & m, 3, idx);
+        VSTORE((hx1 ^ hy0 ^ hz0) & m, 4, idx);
+        VSTORE((hx1 ^ hy0 ^ hz1) & m, 5, idx);
+        VSTORE((hx1 ^ hy1 ^ hz0) & m, 6, idx);
+        VSTORE((hx1 ^ hy1 ^ hz1) & m, 7, idx);
+    }
+}
+
+/* The table entries at idx of level l, feature f of corner c of lane q at
+ * vals[(c * HG_FEATURES + f) * LANES + q]: all 8 corners of every lane in one loop
+ * (independent loads, so cache misses on large tables overlap). */
+HG_INLINE void hg_gather(__global const REAL *restrict fd, const int l, const uint *idx,
+                         REAL *vals) {
+    __global const REAL *tab = fd + (size_t)l * HG_T * HG_FEATURES;
+    for (int c = 0; c < 8; ++c)
+        for (int q = 0; q < LANES; ++q) {
+            __global const REAL *e = tab + (size_t)idx[c * LANES + q] * HG_FEATURES;
+            for (int f = 0; f < HG_FEATURES; ++f)
+                vals[(c * HG_FEATURES + f) * LANES + q] = e[f];
+        }
+}
+
 /* The L*F features of the LANES points and their x, y, z derivatives. Index and weight
- * arithmetic runs on the vectors; the table gather is scalar, lane by lane: all 8 corners
- * of a level for every lane are fetched in one loop (independent loads, so cache misses
- * on large tables overlap). */
+ * arithmetic runs on the vectors; the table gather is scalar, lane by lane (hg_gather). */
 HG_INLINE void hg_encode(FIELD_PARAMS, realv x, realv y, realv z, realv *feat, realv *fx,
                          realv *fy, realv *fz) {
     const REAL sx_ = (REAL)BOX_HI_X - (REAL)BOX_LO_X, sy_ = (REAL)BOX_HI_Y - (REAL)BOX_LO_Y,
@@ -90,39 +133,8 @@ HG_INLINE void hg_encode(FIELD_PARAMS, realv x, realv y, realv z, realv *feat, r
         hg_uintv i = hg_axis(cx, ix, n, n / sx_, &sx, &dsx);
         hg_uintv j = hg_axis(cy, iy, n, n / sy_, &sy, &dsy);
         hg_uintv k = hg_axis(cz, iz, n, n / sz_, &sz, &dsz);
-        /* table indices of corner c = 4a + 2b + d (a b d = low/high along x y z) */
-        if (fp[1 + HG_LEVELS + l] != (REAL)0) { /* dense */
-            const uint s1 = (uint)n + 1u, s2 = s1 * s1;
-            hg_uintv base = (i * s1 + j) * s1 + k;
-            VSTORE(base, 0, idx);
-            VSTORE(base + 1u, 1, idx);
-            VSTORE(base + s1, 2, idx);
-            VSTORE(base + (s1 + 1u), 3, idx);
-            VSTORE(base + s2, 4, idx);
-            VSTORE(base + (s2 + 1u), 5, idx);
-            VSTORE(base + (s2 + s1), 6, idx);
-            VSTORE(base + (s2 + s1 + 1u), 7, idx);
-        } else {
-            const uint m = (uint)(HG_T - 1);
-            hg_uintv hx1 = i + 1u;
-            hg_uintv hy0 = j * HG_PRIME_Y, hy1 = hy0 + HG_PRIME_Y;
-            hg_uintv hz0 = k * HG_PRIME_Z, hz1 = hz0 + HG_PRIME_Z;
-            VSTORE((i ^ hy0 ^ hz0) & m, 0, idx);
-            VSTORE((i ^ hy0 ^ hz1) & m, 1, idx);
-            VSTORE((i ^ hy1 ^ hz0) & m, 2, idx);
-            VSTORE((i ^ hy1 ^ hz1) & m, 3, idx);
-            VSTORE((hx1 ^ hy0 ^ hz0) & m, 4, idx);
-            VSTORE((hx1 ^ hy0 ^ hz1) & m, 5, idx);
-            VSTORE((hx1 ^ hy1 ^ hz0) & m, 6, idx);
-            VSTORE((hx1 ^ hy1 ^ hz1) & m, 7, idx);
-        }
-        __global const REAL *tab = fd + (size_t)l * HG_T * HG_FEATURES;
-        for (int c = 0; c < 8; ++c)
-            for (int q = 0; q < LANES; ++q) {
-                __global const REAL *e = tab + (size_t)idx[c * LANES + q] * HG_FEATURES;
-                for (int f = 0; f < HG_FEATURES; ++f)
-                    vals[(c * HG_FEATURES + f) * LANES + q] = e[f];
-            }
+        hg_indices(fp, l, n, i, j, k, idx);
+        hg_gather(fd, l, idx, vals);
         realv ax[2] = {RV(1) - sx, sx}, ay[2] = {RV(1) - sy, sy}, az[2] = {RV(1) - sz, sz};
         realv dx[2] = {-dsx, dsx}, dy[2] = {-dsy, dsy}, dz[2] = {-dsz, dsz};
         realv v[HG_FEATURES], gx[HG_FEATURES], gy[HG_FEATURES], gz[HG_FEATURES];

@@ -8,18 +8,28 @@
  * g(x) interpolates the nodes of the cell holding x with weights w0 = 1 - s(t), w1 = s(t) per
  * axis, t in [0, 1] the position inside the cell: s(t) = t (trilinear, C0) or, with
  * VOX_SMOOTH, s(t) = 3t^2 - 2t^3 (C1, so grad eta is continuous and the diagonal of
- * Hess(eta) is not zero inside a cell). Points outside the grid are clamped onto it.
+ * Hess(eta) is not zero inside a cell). With VOX_BSPLINE it blends the 4 nodes c-1 .. c+2
+ * per axis around the cell c (64 per point) with uniform cubic B-spline weights (C2; node
+ * indices clamped to the grid; the values are control points, not interpolated values).
+ * Points outside the grid are clamped onto it.
  * eta = 1 + W (g - 1), W the box window, so rays leave the box in straight lines; the gradient
  * is the exact derivative of that expression.
  *
- * The gather is scalar: field_eval spills its LANES points to private arrays, interpolates
- * each with voxel_interp1 and loads the results back; with LANES == 1 it is plain scalar
- * code. The window is applied on the vectors.
+ * Trilinear and smoothstep gather scalar: field_eval spills its LANES points to private
+ * arrays, interpolates each with voxel_interp1 and loads the results back; with LANES == 1 it
+ * is plain scalar code. The B-spline's arithmetic (64 taps) is done on the lane vectors and
+ * only its node reads are per lane. The window is applied on the vectors.
  */
 
 #ifndef VOX_SMOOTH
 #define VOX_SMOOTH 0
 #endif
+#ifndef VOX_BSPLINE
+#define VOX_BSPLINE 0
+#endif
+
+/* PoCL may crash on helpers that take private arrays by pointer unless they are inlined */
+#define VOX_INLINE inline __attribute__((always_inline))
 
 #define VOX_HX (((REAL)BOX_HI_X - (REAL)BOX_LO_X) / (REAL)(VOX_NX - 1))
 #define VOX_HY (((REAL)BOX_HI_Y - (REAL)BOX_LO_Y) / (REAL)(VOX_NY - 1))
@@ -67,6 +77,130 @@ inline REAL voxel_interp1(__global const REAL *restrict fd, REAL x, REAL y, REAL
     return mix(v0, v1, sx);
 }
 
+#if VOX_BSPLINE
+/* B-spline, all lanes at once (field_eval here, field_adjoint in voxel_adjoint.cl): weights,
+ * derivatives and sums on the realv vectors; only the node reads are per lane. */
+typedef CAT(REAL, 4) vox_real4;
+#if LANES == 1
+#define VOX_INT_SAT(v) convert_int_sat(v)
+#else
+#define VOX_INT_SAT(v) CAT(CAT(convert_int, LANES), _sat)(v)
+#endif
+
+/* One axis for all lanes: cell c in [0, n-2] (a NaN coordinate gives 0), uniform cubic
+ * B-spline weights w[4] of the nodes c-1 .. c+2 at t = u - c (voxel.py's bspline_weights),
+ * d w/dx and d2 w/dx2 (zero where the coordinate is clamped onto the grid). */
+VOX_INLINE intv vox_axis4v(realv x, REAL lo, REAL h, int n, realv *w, realv *d, realv *dd) {
+    realv u = (x - RV(lo)) / RV(h);
+    realv uc = clamp(u, RV(0), RV(n - 1));
+    intv c = clamp(VOX_INT_SAT(floor(uc)), 0, n - 2);
+    realv t = uc - TO_REALV(c);
+    const REAL r6 = (REAL)1 / (REAL)6;
+    realv s = RV(1) - t, t2 = t * t, t3 = t2 * t;
+    realv d1 = SEL(RV(0), RV(1) / RV(h), u == uc), d2 = d1 / RV(h);
+    w[0] = s * s * s * r6;
+    w[1] = (RV(3) * t3 - RV(6) * t2 + RV(4)) * r6;
+    w[2] = (RV(-3) * t3 + RV(3) * t2 + RV(3) * t + RV(1)) * r6;
+    w[3] = t3 * r6;
+    d[0] = (RV(-0.5) * s * s) * d1;
+    d[1] = (RV(1.5) * t2 - RV(2) * t) * d1;
+    d[2] = (RV(-1.5) * t2 + t + RV(0.5)) * d1;
+    d[3] = (RV(0.5) * t2) * d1;
+    dd[0] = s * d2;
+    dd[1] = (RV(3) * t - RV(2)) * d2;
+    dd[2] = (RV(1) - RV(3) * t) * d2;
+    dd[3] = t * d2;
+    return c;
+}
+
+/* Per-lane offsets of the 4 node planes along x and y (clamped indices times the stride). */
+VOX_INLINE void vox_offsets(intv c, int n, int stride, int (*o)[LANES]) {
+    for (int a = 0; a < 4; ++a)
+        VSTORE_INT(clamp(c - 1 + a, 0, n - 1) * stride, 0, o[a]);
+}
+
+/* z for all lanes. The 4 nodes of a row are contiguous in fd: with 4 or more nodes along z a
+ * row is one vector read from kb = clamp(k - 1, 0, n - 4) (oz[0][l] = kb), and the weights
+ * of taps clamped onto the same node are folded together (at most one node off: (w0 + w1,
+ * w2, w3, 0) in the first cell, (0, w0, w1, w2 + w3) in the last). With fewer nodes oz[c][l]
+ * are the 4 clamped taps, read one by one. Returns the cell k. */
+#if VOX_NZ >= 4
+#define VOX_ZVEC 1
+#else
+#define VOX_ZVEC 0
+#endif
+VOX_INLINE intv vox_axis4zv(realv z, int (*oz)[LANES], realv *w, realv *d, realv *dd) {
+    intv k = vox_axis4v(z, (REAL)BOX_LO_Z, VOX_HZ, VOX_NZ, w, d, dd);
+#if VOX_ZVEC
+    intv kb = clamp(k - 1, 0, VOX_NZ - 4);
+    realv sh = TO_REALV(k - 1 - kb);
+    maskv lo = sh < RV(0), hi = sh > RV(0);
+    realv *arrs[3] = {w, d, dd};
+    for (int m = 0; m < 3; ++m) {
+        realv *v = arrs[m];
+        realv v0 = v[0], v1 = v[1], v2 = v[2], v3 = v[3];
+        v[0] = SEL(SEL(v0, RV(0), hi), v0 + v1, lo);
+        v[1] = SEL(SEL(v1, v0, hi), v2, lo);
+        v[2] = SEL(SEL(v2, v1, hi), v3, lo);
+        v[3] = SEL(SEL(v3, v2 + v3, hi), RV(0), lo);
+    }
+    VSTORE_INT(kb, 0, oz[0]);
+#else
+    vox_offsets(k, VOX_NZ, 1, oz);
+#endif
+    return k;
+}
+
+/* The 4 z-nodes of row (a, b) for every lane, as 4 vectors q[0..3]. */
+VOX_INLINE void vox_row(__global const REAL *restrict fd, int *ox, int *oy, int (*oz)[LANES],
+                        realv *q) {
+    REAL q0[LANES], q1[LANES], q2[LANES], q3[LANES];
+    for (int l = 0; l < LANES; ++l) {
+        __global const REAL *p = fd + ox[l] + oy[l];
+#if VOX_ZVEC
+        vox_real4 r = vload4(0, p + oz[0][l]);
+        q0[l] = r.s0; q1[l] = r.s1; q2[l] = r.s2; q3[l] = r.s3;
+#else
+        q0[l] = p[oz[0][l]]; q1[l] = p[oz[1][l]]; q2[l] = p[oz[2][l]]; q3[l] = p[oz[3][l]];
+#endif
+    }
+    q[0] = VLOAD(0, q0); q[1] = VLOAD(0, q1); q[2] = VLOAD(0, q2); q[3] = VLOAD(0, q3);
+}
+
+inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
+                        realv *gz) {
+    realv wx[4], dx[4], ex[4], wy[4], dy[4], ey[4], wz[4], dz[4], ez[4];
+    int ox[4][LANES], oy[4][LANES], oz[4][LANES];
+    vox_offsets(vox_axis4v(x, (REAL)BOX_LO_X, VOX_HX, VOX_NX, wx, dx, ex), VOX_NX,
+                VOX_NY * VOX_NZ, ox);
+    vox_offsets(vox_axis4v(y, (REAL)BOX_LO_Y, VOX_HY, VOX_NY, wy, dy, ey), VOX_NY, VOX_NZ, oy);
+    vox_axis4zv(z, oz, wz, dz, ez);
+    realv g = RV(0), dgx = RV(0), dgy = RV(0), dgz = RV(0);
+    for (int a = 0; a < 4; ++a) {
+        realv y0 = RV(0), y1 = RV(0), y2 = RV(0);
+        for (int b = 0; b < 4; ++b) {
+            realv q[4];
+            vox_row(fd, ox[a], oy[b], oz, q);
+            realv zc = q[0] * wz[0] + q[1] * wz[1] + q[2] * wz[2] + q[3] * wz[3];
+            realv zd = q[0] * dz[0] + q[1] * dz[1] + q[2] * dz[2] + q[3] * dz[3];
+            y0 += wy[b] * zc;
+            y1 += dy[b] * zc;
+            y2 += wy[b] * zd;
+        }
+        g += wx[a] * y0;
+        dgx += dx[a] * y0;
+        dgy += wx[a] * y1;
+        dgz += wx[a] * y2;
+    }
+    realv g1 = g - RV(1);
+    realv vx, vy, vz;
+    realv w = box_window(x, y, z, &vx, &vy, &vz);
+    *gx = vx * g1 + w * dgx;
+    *gy = vy * g1 + w * dgy;
+    *gz = vz * g1 + w * dgz;
+    return RV(1) + w * g1;
+}
+#else
 inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
                         realv *gz) {
     REAL xs[LANES], ys[LANES], zs[LANES], gs[LANES], dxs[LANES], dys[LANES], dzs[LANES];
@@ -88,3 +222,4 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
     *gz = wz * g1 + w * VLOAD(0, dzs);
     return RV(1) + w * g1;
 }
+#endif

@@ -1,8 +1,176 @@
 /* Backward-pass pieces of the voxel grid (field_voxel.cl): eta, grad eta, Hess(eta) mu, and
- * the splat of w * d/dtheta [eta (mu . grad eta)] onto the 8 nodes of the cell.
+ * the splat of w * d/dtheta [eta (mu . grad eta)] onto the nodes that weigh in at the point:
+ * the 8 nodes of the cell (trilinear, smoothstep) or the 4 x 4 x 4 nodes c-1 .. c+2 around
+ * it (VOX_BSPLINE, node indices clamped to the grid).
  * Layout as field_voxel.cl: node-centred, node (0,0,0) at the box's low corner, values at
  * fd[(i * VOX_NY + j) * VOX_NZ + k]; eta = 1 + W (g - 1) with W the box window. */
 
+#if VOX_BSPLINE
+/* B-spline: lane-parallel like its field_eval. Each lane keeps the 64 splats of its current
+ * cell in private memory, tap-major (vacc[tap][lane]) so that a step adds them as vectors,
+ * and adds them to the global gradient when it moves to another cell or at the end. The key
+ * is the cell (i * VOX_NY + j) * VOX_NZ + k; the taps are its 4 x 4 x 4 nodes as the gather
+ * reads them (x, y clamped; z folded from kb, see vox_axis4zv). */
+#define FIELD_ACC_DECL                                                                       \
+    int vcell[LANES];                                                                        \
+    REAL vacc[64][LANES];                                                                    \
+    for (int l_ = 0; l_ < LANES; ++l_) {                                                     \
+        vcell[l_] = -1;                                                                      \
+        for (int c_ = 0; c_ < 64; ++c_)                                                      \
+            vacc[c_][l_] = 0;                                                                \
+    }
+#define FIELD_ACC_PARAM , int *vcell, REAL(*vacc)[LANES]
+#define FIELD_ACC_ARG , vcell, vacc
+#define FIELD_ACC_FLUSH(grad, partial, gid)                                                  \
+    for (int l_ = 0; l_ < LANES; ++l_)                                                       \
+        voxel_flush_lane(grad, vcell[l_], vacc, l_)
+
+/* Add lane l's splats of `cell` to grad and zero them. */
+VOX_INLINE void voxel_flush_lane(__global REAL *grad, int cell, REAL (*acc)[LANES], int l) {
+    if (cell < 0)
+        return;
+    const int i = cell / (VOX_NY * VOX_NZ), j = (cell / VOX_NZ) % VOX_NY, k = cell % VOX_NZ;
+    for (int a = 0; a < 4; ++a) {
+        const int oa = clamp(i - 1 + a, 0, VOX_NX - 1) * VOX_NY;
+        for (int b = 0; b < 4; ++b) {
+            __global REAL *row = grad + (oa + clamp(j - 1 + b, 0, VOX_NY - 1)) * VOX_NZ;
+            for (int c = 0; c < 4; ++c) {
+                REAL *v = &acc[16 * a + 4 * b + c][l];
+#if VOX_ZVEC
+                const int kc = clamp(k - 1, 0, VOX_NZ - 4) + c;
+#else
+                const int kc = clamp(k - 1 + c, 0, VOX_NZ - 1);
+#endif
+                if (*v != 0)
+                    atomic_add_real(row + kc, *v);
+                *v = 0;
+            }
+        }
+    }
+}
+
+/* Box window W for all lanes with its gradient g and Hessian H (xx yy zz xy xz yz), as
+ * common.h's window_hess. */
+VOX_INLINE realv vox_window_axis(realv x, REAL lo, REAL hi, realv *da, realv *dda) {
+    const REAL m = (REAL)MARGIN;
+    realv d0 = (x - RV(lo)) / RV(m) - RV(1), d1 = (RV(hi) - x) / RV(m) - RV(1);
+    realv s0 = smoother(d0), s1 = smoother(d1);
+    realv p0 = smoother_d(d0), p1 = smoother_d(d1);
+    realv in0 = SEL(RV(0), RV(1), d0 > RV(0) && d0 < RV(1));
+    realv in1 = SEL(RV(0), RV(1), d1 > RV(0) && d1 < RV(1));
+    realv q0 = in0 * RV(60) * d0 * (RV(1) - d0) * (RV(1) - RV(2) * d0);
+    realv q1 = in1 * RV(60) * d1 * (RV(1) - d1) * (RV(1) - RV(2) * d1);
+    *da = (p0 * s1 - s0 * p1) / RV(m);
+    *dda = (q0 * s1 - RV(2) * p0 * p1 + s0 * q1) / RV(m * m);
+    return s0 * s1;
+}
+VOX_INLINE realv vox_window_hess(realv x, realv y, realv z, realv *g, realv *H) {
+    realv dax, ddax, day, dday, daz, ddaz;
+    realv ax = vox_window_axis(x, (REAL)BOX_LO_X, (REAL)BOX_HI_X, &dax, &ddax);
+    realv ay = vox_window_axis(y, (REAL)BOX_LO_Y, (REAL)BOX_HI_Y, &day, &dday);
+    realv az = vox_window_axis(z, (REAL)BOX_LO_Z, (REAL)BOX_HI_Z, &daz, &ddaz);
+    g[0] = dax * ay * az; g[1] = ax * day * az; g[2] = ax * ay * daz;
+    H[0] = ddax * ay * az; H[1] = ax * dday * az; H[2] = ax * ay * ddaz;
+    H[3] = dax * day * az; H[4] = dax * ay * daz; H[5] = ax * day * daz;
+    return ax * ay * az;
+}
+
+inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, realv my,
+                           realv mz, realv w, realv *gx, realv *gy, realv *gz, realv *hx,
+                           realv *hy, realv *hz, __global REAL *grad FIELD_ACC_PARAM) {
+    realv wx[4], dx[4], sx[4], wy[4], dy[4], sy[4], wz[4], dz[4], sz[4];
+    int ox[4][LANES], oy[4][LANES], oz[4][LANES];
+    intv i = vox_axis4v(x, (REAL)BOX_LO_X, VOX_HX, VOX_NX, wx, dx, sx);
+    intv j = vox_axis4v(y, (REAL)BOX_LO_Y, VOX_HY, VOX_NY, wy, dy, sy);
+    intv k = vox_axis4zv(z, oz, wz, dz, sz);
+    vox_offsets(i, VOX_NX, VOX_NY * VOX_NZ, ox);
+    vox_offsets(j, VOX_NY, VOX_NZ, oy);
+    /* interpolant g, its gradient and Hessian (xx yy zz xy xz yz): separable sums over z,
+     * then y, then x */
+    realv g = RV(0), gg[3] = {RV(0), RV(0), RV(0)};
+    realv gh[6] = {RV(0), RV(0), RV(0), RV(0), RV(0), RV(0)};
+    for (int a = 0; a < 4; ++a) {
+        realv y0 = RV(0), y1 = RV(0), y2 = RV(0), y3 = RV(0), y4 = RV(0), y5 = RV(0);
+        for (int b = 0; b < 4; ++b) {
+            realv q[4];
+            vox_row(fd, ox[a], oy[b], oz, q);
+            realv zc = q[0] * wz[0] + q[1] * wz[1] + q[2] * wz[2] + q[3] * wz[3];
+            realv zd = q[0] * dz[0] + q[1] * dz[1] + q[2] * dz[2] + q[3] * dz[3];
+            realv zs = q[0] * sz[0] + q[1] * sz[1] + q[2] * sz[2] + q[3] * sz[3];
+            y0 += wy[b] * zc; /* g, gx, gxx */
+            y1 += dy[b] * zc; /* gy, gxy */
+            y2 += sy[b] * zc; /* gyy */
+            y3 += wy[b] * zd; /* gz, gxz */
+            y4 += dy[b] * zd; /* gyz */
+            y5 += wy[b] * zs; /* gzz */
+        }
+        g += wx[a] * y0;
+        gg[0] += dx[a] * y0;
+        gg[1] += wx[a] * y1;
+        gg[2] += wx[a] * y3;
+        gh[0] += sx[a] * y0;
+        gh[1] += wx[a] * y2;
+        gh[2] += wx[a] * y5;
+        gh[3] += dx[a] * y1;
+        gh[4] += dx[a] * y3;
+        gh[5] += wx[a] * y4;
+    }
+    realv gw[3], hw[6];
+    realv W = vox_window_hess(x, y, z, gw, hw);
+    realv g1 = g - RV(1);
+    realv eta = RV(1) + W * g1;
+    realv ge0 = gw[0] * g1 + W * gg[0], ge1 = gw[1] * g1 + W * gg[1];
+    realv ge2 = gw[2] * g1 + W * gg[2];
+    *gx = ge0; *gy = ge1; *gz = ge2;
+    /* Hess eta = HW (g-1) + gW gg^T + gg gW^T + W Hg, applied to mu */
+    realv H[6];
+    for (int a = 0; a < 6; ++a)
+        H[a] = hw[a] * g1 + W * gh[a];
+    H[0] += RV(2) * gw[0] * gg[0]; H[1] += RV(2) * gw[1] * gg[1];
+    H[2] += RV(2) * gw[2] * gg[2];
+    H[3] += gw[0] * gg[1] + gg[0] * gw[1];
+    H[4] += gw[0] * gg[2] + gg[0] * gw[2];
+    H[5] += gw[1] * gg[2] + gg[1] * gw[2];
+    *hx = H[0] * mx + H[3] * my + H[4] * mz;
+    *hy = H[3] * mx + H[1] * my + H[5] * mz;
+    *hz = H[4] * mx + H[5] * my + H[2] * mz;
+    maskv act = w != RV(0) && W != RV(0);
+    if (!ANY(act))
+        return eta;
+    /* a lane that splats into another cell than its accumulator's flushes it first */
+    REAL acts[LANES];
+    int keys[LANES];
+    VSTORE(SEL(RV(0), RV(1), act), 0, acts);
+    VSTORE_INT((i * VOX_NY + j) * VOX_NZ + k, 0, keys);
+    for (int l = 0; l < LANES; ++l)
+        if (acts[l] != 0 && keys[l] != vcell[l]) {
+            voxel_flush_lane(grad, vcell[l], vacc, l);
+            vcell[l] = keys[l];
+        }
+    /* node weight c = wx wy wz: d eta / d theta = W c, d (mu . grad eta) / d theta =
+     * c (mu . gW) + W mu . grad c; the splat w [(mu . grad eta) W c + eta (c (mu . gW) +
+     * W mu . grad c)] = A c + B mu . grad c, separable in the three axes */
+    realv A = w * ((mx * ge0 + my * ge1 + mz * ge2) * W +
+                   eta * (mx * gw[0] + my * gw[1] + mz * gw[2]));
+    realv B = w * eta * W;
+    A = SEL(RV(0), A, act);
+    B = SEL(RV(0), B, act);
+    realv bz[4];
+    for (int c = 0; c < 4; ++c)
+        bz[c] = B * mz * dz[c];
+    for (int a = 0; a < 4; ++a) {
+        realv xa = A * wx[a] + B * mx * dx[a], xb = B * my * wx[a];
+        for (int b = 0; b < 4; ++b) {
+            realv pc = xa * wy[b] + xb * dy[b], pd = wx[a] * wy[b];
+            for (int c = 0; c < 4; ++c) {
+                REAL *r = vacc[16 * a + 4 * b + c];
+                VSTORE(VLOAD(0, r) + pc * wz[c] + pd * bz[c], 0, r);
+            }
+        }
+    }
+    return eta;
+}
+#else
 /* Each lane keeps the splats of its current cell in private memory and adds them to the
  * global gradient when it moves to another cell: a ray takes several steps per cell, so
  * this saves most of the atomic additions. */
@@ -20,7 +188,7 @@
     for (int l_ = 0; l_ < LANES; ++l_)                                                       \
         voxel_flush(grad, vcell[l_], vacc[l_])
 
-inline void voxel_flush(__global REAL *grad, int cell, REAL *acc) {
+VOX_INLINE void voxel_flush(__global REAL *grad, int cell, REAL *acc) {
     if (cell < 0)
         return;
     for (int a = 0; a < 2; ++a)
@@ -34,7 +202,7 @@ inline void voxel_flush(__global REAL *grad, int cell, REAL *acc) {
 }
 
 /* weights of the low/high node along one axis: value, first and second derivative in t */
-inline void vox_axis(REAL t, REAL *w, REAL *d, REAL *s) {
+VOX_INLINE void vox_axis(REAL t, REAL *w, REAL *d, REAL *s) {
 #if VOX_SMOOTH
     REAL st = t * t * (3 - 2 * t), dt = 6 * t * (1 - t), sst = 6 - 12 * t;
 #else
@@ -45,9 +213,9 @@ inline void vox_axis(REAL t, REAL *w, REAL *d, REAL *s) {
     s[0] = -sst; s[1] = sst;
 }
 
-inline REAL voxel_adjoint1(__global const REAL *restrict fd, __global REAL *grad, REAL x,
-                           REAL y, REAL z, REAL mx, REAL my, REAL mz, REAL w, REAL *ge,
-                           REAL *hm, int *cell, REAL *acc) {
+VOX_INLINE REAL voxel_adjoint1(__global const REAL *restrict fd, __global REAL *grad,
+                               REAL x, REAL y, REAL z, REAL mx, REAL my, REAL mz, REAL w,
+                               REAL *ge, REAL *hm, int *cell, REAL *acc) {
     const REAL hx = ((REAL)BOX_HI_X - (REAL)BOX_LO_X) / (VOX_NX - 1);
     const REAL hy = ((REAL)BOX_HI_Y - (REAL)BOX_LO_Y) / (VOX_NY - 1);
     const REAL hz = ((REAL)BOX_HI_Z - (REAL)BOX_LO_Z) / (VOX_NZ - 1);
@@ -144,3 +312,4 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
     *hx = VLOAD(0, ho[0]); *hy = VLOAD(0, ho[1]); *hz = VLOAD(0, ho[2]);
     return VLOAD(0, eo);
 }
+#endif

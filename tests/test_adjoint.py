@@ -99,14 +99,15 @@ def test_checkpoints_tame_the_drift_through_a_sharp_interface():
     d = np.tile([0.0, 0.0, 1.0], (n, 1))
     env = smooth_env()
     target = env.lookup(d).astype(np.float64)
-    drifts = []
-    for every in (0, 8):
+    p99 = []
+    for every in (0, 16, 4):
         eng = GradientEngine(
             VoxelGrid(vals, BOX), BOX, step=1.0, precision="float64", checkpoint_every=every
         )
-        drifts.append(eng.loss_and_grad(o, d, target, env).drift)
-    assert np.percentile(drifts[0], 99) > 1.0, np.percentile(drifts[0], 99)
-    assert drifts[1].max() < 0.1, drifts[1].max()
+        p99.append(np.percentile(eng.loss_and_grad(o, d, target, env).drift, 99))
+    # drift measured where the ray restarts from a checkpoint: it shrinks with the segment
+    assert p99[0] > 10.0 and p99[1] < p99[0] / 10 and p99[2] < p99[1] / 5, p99
+    assert p99[2] < 0.1, p99
 
 
 def test_trilinear_grid_misses_the_face_hessian():
@@ -158,3 +159,72 @@ def test_device_buffers_do_not_grow_with_the_step_count(precision, monkeypatch):
         totals.append((sum(sizes), r.steps))
     assert totals[1][1] > 6 * totals[0][1]  # eight times the steps ...
     assert totals[0][0] == totals[1][0]  # ... and the same bytes
+
+
+# --- tricubic B-spline voxel grid ----------------------------------------------------------
+
+
+def fd_errors_fine_eps(interp, step, eps=1e-7, n_dirs=3, seed=1, z_nodes=None):
+    """fd_errors with a smaller FD perturbation: below ~1e-5 relative error a perturbation of
+    1e-6 lets some exit directions cross a texel edge of the bilinear environment map (a kink
+    in the loss), which puts a floor of ~5e-5 under the error whatever the step.
+    z_nodes: keep only these z-planes of the scene's grid."""
+    vals, o, d, env, target = voxel_scene()
+    if z_nodes is not None:
+        vals = np.ascontiguousarray(vals[:, :, z_nodes])
+    eng = GradientEngine(VoxelGrid(vals, BOX, interp), BOX, step=step, precision="float64", lanes=4)
+    res = eng.loss_and_grad(o, d, target, env)
+    p0 = vals.ravel().copy()
+
+    def loss(p):
+        eng.set_params(p)
+        tr = eng.tracer.trace(o, d)
+        ok = (tr.status == 0).astype(float)
+        return photometric_loss(env, tr.last_velocity, target, weight=ok)[0]
+
+    rng = np.random.default_rng(seed)
+    errs = []
+    for _ in range(n_dirs):
+        u = rng.normal(size=p0.shape)
+        fd = (loss(p0 + eps * u) - loss(p0 - eps * u)) / (2 * eps)
+        errs.append(abs(fd - res.grad @ u) / abs(fd))
+    eng.set_params(p0)
+    return np.array(errs), res
+
+
+def test_bspline_voxel_adjoint_matches_finite_differences_and_converges_with_step():
+    """C2 weights: Hess(eta) is continuous, so the continuous adjoint converges to the discrete
+    gradient fast (measured median 1.3e-4 at step 2, 3e-7 at step 0.5)."""
+    coarse, r_coarse = fd_errors_fine_eps("bspline", 2.0)
+    fine, r_fine = fd_errors_fine_eps("bspline", 0.5)
+    assert np.median(fine) < 1e-5, fine
+    assert np.median(fine) < np.median(coarse) / 20, (coarse, fine)
+    assert r_fine.drift.max() < r_coarse.drift.max() / 10
+    # the original harness (perturbation 1e-6) agrees within its floor
+    errs, _ = fd_errors("bspline", 1.0)
+    assert np.median(errs) < 2e-4, errs
+
+
+def test_bspline_adjoint_is_the_same_for_every_lane_width_and_precision():
+    """64-tap private accumulators with LANES = 1, 4, 8 (float64) and 1, 16 (float32, the CPU
+    default): the same gradient up to rounding; the clamped border nodes get splats too."""
+    vals, o, d, env, target = voxel_scene(n_rays=500)
+    grads = {}
+    for precision, lanes in [("float64", 4), ("float64", 1), ("float64", 8), ("float32", 16)]:
+        eng = GradientEngine(
+            VoxelGrid(vals, BOX, "bspline"), BOX, step=1.0, precision=precision, lanes=lanes
+        )
+        grads[precision, lanes] = eng.loss_and_grad(o, d, target, env).grad
+    ref = grads["float64", 4]
+    scale = np.abs(ref).max()
+    assert np.abs(grads["float64", 1] - ref).max() < 1e-12 * scale
+    assert np.abs(grads["float64", 8] - ref).max() < 1e-12 * scale
+    assert np.abs(grads["float32", 16] - ref).max() < 1e-4 * scale  # measured 2e-6
+    g = ref.reshape(vals.shape)
+    assert np.abs(g[:, :, 0]).max() > 0  # rays enter through z = -50: border nodes splatted
+
+
+def test_bspline_adjoint_with_3_nodes_along_z():
+    """Under 4 nodes along z the kernels gather and splat clamped taps one by one."""
+    errs, _ = fd_errors_fine_eps("bspline", 0.5, z_nodes=[0, 5, 11])
+    assert np.median(errs) < 3e-5, errs  # measured 2e-6

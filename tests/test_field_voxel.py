@@ -14,7 +14,7 @@ from clrefract.tracer import Tracer
 
 BOX = Box()  # [-50, 50]^3, margin 4: window ramps over 4..8 mm from each wall
 SHAPE = (9, 10, 11)  # distinct per axis, so a swapped axis or index order shows
-INTERPS = ("trilinear", "smoothstep")
+INTERPS = ("trilinear", "smoothstep", "bspline")
 CONFIGS = [("float64", 1), ("float64", 16), ("float32", 1), ("float32", 16)]
 
 
@@ -109,8 +109,8 @@ def test_gradient_matches_finite_differences(interp):
     scale = np.abs(grad).max()
     assert scale > 1e-2  # the sample saw a non-trivial gradient
     # smoothstep: the second derivative jumps at faces, so the FD error is O(h) there
-    # (measured 3e-7 relative); 3e-10 elsewhere
-    tol = 1e-9 if interp == "trilinear" else 1e-6
+    # (measured 3e-7 relative); 3e-10 elsewhere. B-spline: C2, only the third jumps.
+    tol = 1e-6 if interp == "smoothstep" else 1e-9
     fd_ref = central_fd(lambda p: field.eval(p)[0], pts, h)
     assert np.abs(fd_ref - grad).max() < tol * scale
     off_faces = face_distance(pts) > 1e-3
@@ -134,7 +134,7 @@ def test_trilinear_reproduces_a_linear_field(precision, lanes, tol):
 
 
 @pytest.mark.parametrize("evaluate", ["numpy", "kernel"])
-def test_smoothstep_gradient_is_continuous_across_faces_trilinear_is_not(evaluate):
+def test_smooth_gradients_are_continuous_across_faces_trilinear_is_not(evaluate):
     rng = np.random.default_rng(7)
     d = 1e-7
     jumps = {}
@@ -151,7 +151,7 @@ def test_smoothstep_gradient_is_continuous_across_faces_trilinear_is_not(evaluat
             jump = np.abs(ev(pts + e)[1] - ev(pts - e)[1]).max(0)  # per component
             jumps[interp, axis] = jump
             scale = np.abs(ev(pts + 5.0 * e / d)[1]).max()
-            if interp == "smoothstep":
+            if interp != "trilinear":
                 assert jump.max() < 1e-5 * scale
             else:
                 assert jump[axis] > 0.1 * scale  # the normal derivative jumps
@@ -170,8 +170,11 @@ def test_data_layout_defines_and_metadata():
         "VOX_NY": ny,
         "VOX_NZ": nz,
         "VOX_SMOOTH": 1,
+        "VOX_BSPLINE": 0,
     }
     assert GRIDS["trilinear"].defines()["VOX_SMOOTH"] == 0
+    assert GRIDS["bspline"].defines()["VOX_SMOOTH"] == 0
+    assert GRIDS["bspline"].defines()["VOX_BSPLINE"] == 1
     assert field.uses_window()
     assert field.eta_max == field.values.max()
     d = field.to_dict()
@@ -195,14 +198,15 @@ def test_from_field_samples_the_nodes():
     assert VoxelGrid.from_field(sphere, BOX, (5, 6, 7)).shape == (5, 6, 7)
 
 
-def test_save_load_roundtrip(tmp_path):
+@pytest.mark.parametrize("interp", ["smoothstep", "bspline"])
+def test_save_load_roundtrip(tmp_path, interp):
     box = Box((-10.0, -20.0, -30.0), (10.0, 20.0, 30.0), 2.0)
-    field = VoxelGrid(1 + np.random.default_rng(1).random((4, 5, 6)), box, "smoothstep")
+    field = VoxelGrid(1 + np.random.default_rng(1).random((4, 5, 6)), box, interp)
     path = tmp_path / "grid.npz"
     field.save(path)
     for back in (VoxelGrid.load(path), load_field_file(path)):
         assert isinstance(back, VoxelGrid)
-        assert back.box == box and back.interp == "smoothstep"
+        assert back.box == box and back.interp == interp
         assert np.array_equal(back.values, field.values)
     assert list(tmp_path.iterdir()) == [path]  # no temporary left behind
 
@@ -296,3 +300,103 @@ def test_fitting_helpers():
     fine = lin.resampled(17)
     assert fine.shape == (17, 17, 17)
     assert np.abs(fine.data() - (1.5 + fine.node_points() @ a)).max() < 1e-13
+
+
+# --- tricubic B-spline ---------------------------------------------------------------------
+
+
+def test_bspline_matches_scipy_spline_without_prefilter():
+    """An independent oracle: scipy's order-3 spline of the node values taken as control
+    points (prefilter=False), edge nodes repeated (mode="nearest") as the clamped indices."""
+    from scipy.ndimage import map_coordinates
+
+    field = GRIDS["bspline"]
+    pts = np.random.default_rng(11).uniform(-50, 50, (3000, 3))
+    u = ((pts - np.asarray(BOX.lo)) / field.spacing).T
+    ref = map_coordinates(field.values, u, order=3, prefilter=False, mode="nearest")
+    g, _ = field.interpolant(pts)
+    assert np.abs(g - ref).max() < 1e-13
+
+
+@pytest.mark.parametrize("precision,lanes,tol", [("float64", 16, 1e-13), ("float32", 1, 2e-6)])
+def test_bspline_reproduces_a_linear_field_smoothstep_does_not(precision, lanes, tol):
+    """Away from the border cells (clamped node indices) and inside the window, B-spline
+    weights reproduce a linear ramp of nodes exactly, value and gradient; smoothstep turns it
+    into terraces (gradient zero across every node plane)."""
+    a = np.array([0.002, -0.001, 0.003])
+    vals = (1.5 + VoxelGrid(np.ones(SHAPE), BOX).node_points() @ a).reshape(SHAPE)
+    spline = VoxelGrid(vals, BOX, "bspline")
+    pts = np.random.default_rng(5).uniform(-37.0, 37.0, (3000, 3))  # cells 1 .. n-3, W = 1
+    pts[:500, 1] = node_planes(1)[2:-2].repeat(100)[:500]  # and on faces
+    pts = pts.astype(np.float32).astype(np.float64)
+    for eta, grad in (spline.eval(pts), tracer(spline, precision, lanes).eval_field(pts)):
+        assert np.abs(eta - (1.5 + pts @ a)).max() < tol
+        assert np.abs(grad - a).max() < tol
+    eta, grad = VoxelGrid(vals, BOX, "smoothstep").eval(pts)
+    assert np.abs(grad - a).max() > 0.5 * np.abs(a).max()  # terraces
+    # the border cells do not reproduce it (node indices clamped there), nor does the window
+    edge = np.array([[-45.0, 0.0, 0.0], [0.0, 0.0, 47.0]])
+    assert np.abs(spline.eval(edge)[0] - (1.5 + edge @ a)).min() > 1e-4
+
+
+def test_bspline_second_derivatives_are_continuous_across_faces_smoothstep_are_not():
+    """C2 against C1: one-sided differences of the gradient just either side of a node plane
+    agree for the B-spline and differ for smoothstep (kernel, float64)."""
+    rng = np.random.default_rng(8)
+    d = 1e-4
+    rel = {}
+    for interp in ("smoothstep", "bspline"):
+        ev = tracer(GRIDS[interp], "float64", 16).eval_field
+        worst = 0.0
+        for axis in range(3):
+            pts = rng.uniform(-35, 35, (200, 3))
+            planes = node_planes(axis)
+            pts[:, axis] = rng.choice(planes[(planes > -35) & (planes < 35)], 200)
+            e = np.zeros(3)
+            e[axis] = d
+            right = (ev(pts + 2 * e)[1] - ev(pts + e)[1]) / d
+            left = (ev(pts - e)[1] - ev(pts - 2 * e)[1]) / d
+            worst = max(worst, np.abs(right - left).max() / np.abs(right).max())
+        rel[interp] = worst
+    assert rel["bspline"] < 1e-3 and rel["smoothstep"] > 0.1, rel
+
+
+def test_bspline_from_field_takes_the_samples_as_control_points():
+    """No prefilter: the node values are the samples, and the spline at a node is their
+    (1, 4, 1) / 6 blend per axis, not the sample itself."""
+    sphere = Sphere(radius=20.0, eta=1.5, width=4.0)
+    field = VoxelGrid.from_field(sphere, BOX, 21, "bspline")
+    assert field.interp == "bspline"
+    nodes = field.node_points()
+    assert np.array_equal(field.data(), sphere.eval(nodes)[0])
+    v = field.values
+    i, j, k = 10, 10, 13  # a node on the sphere's interface
+    blend = np.einsum("a,b,c,abc->", *[np.array([1, 4, 1]) / 6] * 3, v[9:12, 9:12, 12:15])
+    g, _ = field.interpolant(nodes[[(i * 21 + j) * 21 + k]])
+    assert g[0] == pytest.approx(blend, abs=1e-14)
+    assert abs(g[0] - v[i, j, k]) > 1e-3
+    eta = field.eval(nodes)[0]  # non-negative weights summing to 1: within the samples' range
+    assert eta.max() < 1.5 + 1e-12 and eta.min() > 1.0 - 1e-12
+
+
+def test_bspline_resampling_keeps_a_linear_field():
+    a = np.array([0.002, -0.001, 0.003])
+    nodes = VoxelGrid(np.ones(SHAPE), BOX).node_points()
+    lin = VoxelGrid((1.5 + nodes @ a).reshape(SHAPE), BOX, "bspline", eta_max=2.0)
+    fine = lin.resampled(17)
+    assert fine.interp == "bspline" and fine.eta_bound == 2.0
+    pts = np.random.default_rng(4).uniform(-37, 37, (500, 3))
+    assert np.abs(fine.eval(pts)[0] - (1.5 + pts @ a)).max() < 1e-13
+
+
+@pytest.mark.parametrize("shape", [(2, 3, 2), (4, 5, 3), (3, 4, 4)])
+def test_bspline_kernel_on_grids_with_fewer_than_4_nodes_per_axis(shape):
+    """Small grids clamp most taps (and, under 4 nodes along z, take the kernel's per-tap
+    gather path instead of its 4-vector row reads)."""
+    field = VoxelGrid(1 + 0.5 * np.random.default_rng(9).random(shape), BOX, "bspline")
+    pts = sample_points(0.0, n=500)
+    eta_ref, grad_ref = field.eval(pts)
+    for lanes in (1, 8):
+        eta, grad = Tracer(field, BOX, precision="float64", lanes=lanes).eval_field(pts)
+        assert np.abs(eta - eta_ref).max() < 1e-14
+        assert np.abs(grad - grad_ref).max() < 1e-15

@@ -57,7 +57,7 @@ def bench_fields(n: int, step: float, repeats: int) -> list[dict]:
     try:
         from clrefract.fields.voxel import VoxelGrid
 
-        for interp in ("trilinear", "smoothstep"):
+        for interp in ("trilinear", "smoothstep", "bspline"):
             fields.append(
                 (f"voxel-128-{interp}", VoxelGrid.from_field(Sphere(width=4.0), BOX, 128, interp))
             )

@@ -24,6 +24,12 @@ Layout, shared with kernels_cl/field_hashgrid.cl:
   dense_0 .. dense_{L-1}] (dense_l = 1.0 for a directly indexed level, 0.0 for a hashed one).
 - Build defines: FIELD_HASHGRID, HG_LEVELS, HG_FEATURES, HG_LOG2T, HG_HIDDEN, HG_LAYERS,
   HG_SMOOTH and HG_MLP_OFFSET (= L*T*F, where the MLP starts in fd).
+- Backward pass (kernels_cl/hashgrid_adjoint.cl, reference `adjoint_terms`): eta, grad eta,
+  Hess(eta) mu by second-order forward mode, then reverse mode of the splat
+  w d/dtheta [eta (mu . grad eta)] into the parameters. Table entries get atomic adds; the
+  MLP (`n_shared` parameters from `shared_offset`) is summed per work-item over its rays
+  into the engine's `partial` buffer. Fit with smoothstep: trilinear weights have Dirac
+  second derivatives on the cell faces that a pointwise adjoint misses.
 """
 
 from __future__ import annotations
@@ -165,8 +171,11 @@ def dense_index(i, j, k, n: int) -> np.ndarray:
     return (np.asarray(i, np.int64) * s + np.asarray(j, np.int64)) * s + np.asarray(k, np.int64)
 
 
-def _softplus(h):
-    return np.logaddexp(0.0, h)
+def _softplus_sigmoid(h):
+    """softplus(h) and its derivative sigmoid(h), sharing one exponential."""
+    e = np.exp(-np.abs(h))
+    r = 1.0 / (1.0 + e)
+    return np.maximum(h, 0.0) + np.log1p(e), np.where(h >= 0, r, e * r)
 
 
 def _sigmoid(h):
@@ -179,6 +188,40 @@ def _axis_weights(t, smooth: bool):
     if smooth:
         return t * t * (3 - 2 * t), 6 * t * (1 - t), 6 - 12 * t
     return t, np.ones_like(t), np.zeros_like(t)
+
+
+def _window_hessian(box: Box, pts: np.ndarray):
+    """Box window W (n,), its gradient (n, 3) and Hessian (n, 3, 3) (base.box_window's W)."""
+    lo, hi, m = np.asarray(box.lo), np.asarray(box.hi), box.margin
+    d0, d1 = (pts - lo) / m - 1, (hi - pts) / m - 1
+
+    def s(t):
+        t = np.clip(t, 0.0, 1.0)
+        return t * t * t * (t * (t * 6 - 15) + 10)
+
+    def ds(t):
+        return np.where((t > 0) & (t < 1), 30 * t * t * (t * (t - 2) + 1), 0.0)
+
+    def dds(t):
+        return np.where((t > 0) & (t < 1), 60 * t * (1 - t) * (1 - 2 * t), 0.0)
+
+    a = s(d0) * s(d1)  # per-axis factors (n, 3) and their derivatives in x
+    da = (ds(d0) * s(d1) - s(d0) * ds(d1)) / m
+    dda = (dds(d0) * s(d1) - 2 * ds(d0) * ds(d1) + s(d0) * dds(d1)) / m**2
+    grad = np.empty_like(pts)
+    hess = np.empty((len(pts), 3, 3))
+    for r in range(3):
+        f = a.copy()
+        f[:, r] = da[:, r]
+        grad[:, r] = f.prod(axis=1)
+        for q in range(3):
+            f = a.copy()
+            if r == q:
+                f[:, r] = dda[:, r]
+            else:
+                f[:, r], f[:, q] = da[:, r], da[:, q]
+            hess[:, r, q] = f.prod(axis=1)
+    return a.prod(axis=1), grad, hess
 
 
 _CORNERS = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])  # (8, 3)
@@ -196,6 +239,7 @@ class HashGridField(Field):
 
     kind = "hashgrid"
     source = "field_hashgrid.cl"
+    adjoint_source = "hashgrid_adjoint.cl"
 
     def __init__(
         self,
@@ -269,6 +313,16 @@ class HashGridField(Field):
             off += o
         return out
 
+    @property
+    def n_shared(self) -> int:
+        """Parameters shared by every ray (the MLP): the backward pass sums their gradient
+        per work-item into a buffer the host adds up, instead of global atomics."""
+        return self.config.n_mlp_params
+
+    @property
+    def shared_offset(self) -> int:
+        return self.config.n_table_params
+
     def set_data(self, params: np.ndarray) -> None:
         """Take a new flat parameter vector (copied)."""
         self.params_vec = self._checked(params)
@@ -324,6 +378,14 @@ class HashGridField(Field):
         return {"kind": self.kind, **asdict(self.config), "box": self.box.to_dict()}
 
     # --- NumPy reference ---------------------------------------------------------------------
+    def _corner_indices(self, cell: np.ndarray, level: int) -> np.ndarray:
+        """Table indices (n, 8) of the corners of cells (n, 3) of one level."""
+        c = self.config
+        v = cell[:, None, :] + _CORNERS[None]  # (n, 8, 3) integer vertices
+        if c.dense[level]:
+            return dense_index(v[..., 0], v[..., 1], v[..., 2], c.resolutions[level])
+        return hash_index(v[..., 0], v[..., 1], v[..., 2], c.log2_table)
+
     def _level_corners(self, u: np.ndarray, inside: np.ndarray, level: int, second=False):
         """The 8 corners of the cell holding normalised points u (n, 3) on one level.
 
@@ -351,11 +413,7 @@ class HashGridField(Field):
             ],
             axis=2,
         )
-        v = cell[:, None, :] + _CORNERS[None]  # (n, 8, 3) integer vertices
-        if c.dense[level]:
-            idx = dense_index(v[..., 0], v[..., 1], v[..., 2], n_l)
-        else:
-            idx = hash_index(v[..., 0], v[..., 1], v[..., 2], c.log2_table)
+        idx = self._corner_indices(cell, level)
         if not second:
             return idx, w, dw
         dda = np.where(hi, dds[:, None, :], -dds[:, None, :])
@@ -376,33 +434,54 @@ class HashGridField(Field):
         return uc, (u == uc).astype(np.float64)
 
     def encode(self, pts: np.ndarray, params: np.ndarray | None = None):
-        """Features (n, L*F) and their gradient d features / dx (n, L*F, 3) at points (n, 3)."""
+        """Features (n, L*F) and their gradient d features / dx (n, L*F, 3) at points (n, 3).
+        The 8 corners are contracted along z, then y, then x (fewer operations than
+        weighting every corner by a product of three factors)."""
         pts = np.asarray(pts, np.float64).reshape(-1, 3)
         c = self.config
         tab = (self.params_vec if params is None else params)[self.table_slice]
         tab = tab.reshape(c.levels, c.table_size, c.features)
-        feat = np.empty((len(pts), c.n_features))
-        dfeat = np.empty((len(pts), c.n_features, 3))
+        n = len(pts)
+        feat = np.empty((n, c.n_features))
+        dfeat = np.empty((n, c.n_features, 3))
         u, inside = self._normalised(pts)
         for level in range(c.levels):
-            idx, w, dw = self._level_corners(u, inside, level)
-            v = tab[level][idx]  # (n, 8, F)
+            n_l = c.resolutions[level]
+            p = u * n_l
+            cell = np.clip(np.floor(p).astype(np.int64), 0, n_l - 1)
+            s, ds, _ = _axis_weights(p - cell, c.interp == "smoothstep")
+            ds = ds * (n_l / self.box.size) * inside
+            s, ds = s[:, :, None, None, None], ds[:, :, None, None, None]
+            v = tab[level][self._corner_indices(cell, level)].reshape(n, 2, 2, 2, -1)
+            # corner c = 4a + 2b + d, (a, b, d) low/high along (x, y, z)
+            dv = v[:, :, :, 1] - v[:, :, :, 0]
+            vz, gz = v[:, :, :, 0] + dv * s[:, 2], dv * ds[:, 2]  # (n, 2, 2, F)
+            dv = vz[:, :, 1] - vz[:, :, 0]
+            vy, gy = vz[:, :, 0] + dv * s[:, 1, 0], dv * ds[:, 1, 0]  # (n, 2, F)
+            gz = gz[:, :, 0] + (gz[:, :, 1] - gz[:, :, 0]) * s[:, 1, 0]
+            sx, dsx = s[:, 0, 0, 0], ds[:, 0, 0, 0]  # (n, 1)
             sl = slice(level * c.features, (level + 1) * c.features)
-            feat[:, sl] = np.einsum("nc,ncf->nf", w, v)
-            dfeat[:, sl] = np.einsum("ncd,ncf->nfd", dw, v)
+            feat[:, sl] = vy[:, 0] + (vy[:, 1] - vy[:, 0]) * sx
+            dfeat[:, sl, 0] = (vy[:, 1] - vy[:, 0]) * dsx
+            dfeat[:, sl, 1] = gy[:, 0] + (gy[:, 1] - gy[:, 0]) * sx
+            dfeat[:, sl, 2] = gz[:, 0] + (gz[:, 1] - gz[:, 0]) * sx
         return feat, dfeat
 
     def mlp(self, feat: np.ndarray, dfeat: np.ndarray, params: np.ndarray | None = None):
         """Output o (n,) and its gradient (n, 3) by forward mode: value and the 3 directional
         derivatives pushed through every layer (dh = W df; d softplus(h) = sigmoid(h) dh)."""
         layers = self.mlp_layers(params)
-        a, da = feat, dfeat  # (n, k), (n, k, 3)
+        n = len(feat)
+        # derivatives as (3 n, k) rows: every layer is one matrix product
+        a, da = feat, np.moveaxis(dfeat, 2, 0).reshape(3 * n, -1)
         for w, b in layers[:-1]:
             h = a @ w.T + b
-            dh = np.einsum("nid,ji->njd", da, w)
-            a, da = _softplus(h), _sigmoid(h)[:, :, None] * dh
+            a, sg = _softplus_sigmoid(h)
+            da = (da @ w.T).reshape(3, n, -1)
+            da *= sg
+            da = da.reshape(3 * n, -1)
         w, b = layers[-1]
-        return a @ w[0] + b[0], np.einsum("nid,i->nd", da, w[0])
+        return a @ w[0] + b[0], (da @ w[0]).reshape(3, n).T
 
     def eval(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pts = np.asarray(pts, np.float64).reshape(-1, 3)
@@ -418,6 +497,153 @@ class HashGridField(Field):
             eta[a : a + _CHUNK] = 1.0 + w * g1
             grad[a : a + _CHUNK] = dw * g1[:, None] + w[:, None] * dg1
         return eta, grad
+
+    # --- backward pass and regulariser (float64 references) -----------------------------
+    def _forward2(self, pts, mu, params, hessian=True):
+        """Second-order forward mode at points (n, 3) along mu (n, 3): o, grad o and
+        Hess(o) mu (mu is only needed with `hessian`; zero without), with what the reverse
+        pass needs (`tape`: every layer's input and its gradient, whatever mu the reverse
+        pass then takes). Derivatives are (3, n, k): every layer is three matrix products."""
+        c = self.config
+        tab = params[self.table_slice].reshape(c.levels, c.table_size, c.features)
+        n = len(pts)
+        f = np.empty((n, c.n_features))
+        fg = np.empty((3, n, c.n_features))
+        fh = np.zeros((3, n, c.n_features))
+        u, inside = self._normalised(pts)
+        corners = []
+        for level in range(c.levels):
+            idx, w, dw, *ddw = self._level_corners(u, inside, level, second=hessian)
+            v = tab[level][idx]  # (n, 8, F)
+            sl = slice(level * c.features, (level + 1) * c.features)
+            f[:, sl] = np.einsum("nc,ncf->nf", w, v)
+            for d in range(3):
+                fg[d, :, sl] = np.einsum("nc,ncf->nf", dw[..., d], v)
+                if hessian:
+                    hw = ddw[0][..., d, :] @ mu[:, :, None]  # (n, 8, 1): row d of Hess w, mu
+                    fh[d, :, sl] = np.einsum("nc,ncf->nf", hw[..., 0], v)
+            corners.append((idx, w, dw))
+        layers = self.mlp_layers(params)
+        mut = mu.T[:, :, None] if hessian else None  # (3, n, 1)
+        a, ag, ah = f, fg, fh
+        tape = []
+        for wm, b in layers[:-1]:
+            h = a @ wm.T + b
+            hg = ag @ wm.T
+            a_new, s = _softplus_sigmoid(h)
+            tape.append((a, ag, s, hg))
+            if hessian:
+                q = s * (1 - s) * (mut * hg).sum(0)
+                ah = q * hg + s * (ah @ wm.T)
+            a, ag = a_new, s * hg
+        wo, bo = layers[-1]
+        tape.append((a, ag, None, None))
+        oh = (ah @ wo[0]).T if hessian else np.zeros((n, 3))
+        return a @ wo[0] + bo[0], (ag @ wo[0]).T, oh, (corners, tape)
+
+    def _reverse2(self, ob, omb, mu, tape, params) -> np.ndarray:
+        """sum_n ob_n do/dtheta + omb_n do_mu/dtheta (o_mu = mu_n . grad o) over the points
+        of a _forward2 tape: reverse mode through the (value, mu-tangent) pairs."""
+        c = self.config
+        corners, acts = tape
+        grad = np.zeros(c.n_params)
+        offsets, off = [], c.n_table_params
+        for o, i in c.layer_shapes:
+            offsets.append(off)
+            off += o * i + o
+        layers = self.mlp_layers(params)
+        mut = mu.T[:, :, None]  # (3, n, 1)
+        hb, hmb = ob[:, None], omb[:, None]  # adjoints of the output layer's h and h_mu
+        for k in range(len(layers) - 1, -1, -1):
+            wm, _ = layers[k]
+            a, ag, _, _ = acts[k]
+            o, i = wm.shape
+            grad[offsets[k] : offsets[k] + o * i] = (hb.T @ a + hmb.T @ (mut * ag).sum(0)).ravel()
+            grad[offsets[k] + o * i : offsets[k] + o * i + o] = hb.sum(0)
+            ab, amb = hb @ wm, hmb @ wm  # adjoints of this layer's inputs
+            if k > 0:  # through the softplus of the layer below: a = sp(h), a_mu = s h_mu
+                _, _, s, hg = acts[k - 1]
+                q = s * (1 - s) * (mut * hg).sum(0)
+                hb, hmb = ab * s + amb * q, amb * s
+        # table entries: tb = fb w + fmb (mu . grad w) per corner, summed in one bincount
+        flat, vals = [], []
+        for level, (idx, w, dw) in enumerate(corners):
+            wmu = np.einsum("ncd,nd->nc", dw, mu)
+            sl = slice(level * c.features, (level + 1) * c.features)
+            vals.append(w[:, :, None] * ab[:, None, sl] + wmu[:, :, None] * amb[:, None, sl])
+            flat.append(
+                (level * c.table_size + idx[:, :, None]) * c.features + np.arange(c.features)
+            )
+        grad[: c.n_table_params] = np.bincount(
+            np.concatenate(flat, axis=None),
+            np.concatenate(vals, axis=None),
+            minlength=c.n_table_params,
+        )
+        return grad
+
+    def adjoint_terms(self, pts, mu, w=None, params=None):
+        """What the backward kernel computes, in float64: at points (n, 3) with adjoint
+        mu (n, 3) and weights w (n,), eta (n,), grad eta (n, 3), Hess(eta) mu (n, 3) and
+        the parameter gradient sum_n w_n d/dtheta [eta (mu_n . grad eta)](x_n)."""
+        p = self.params_vec if params is None else np.asarray(params, np.float64)
+        pts = np.asarray(pts, np.float64).reshape(-1, 3)
+        mu = np.asarray(mu, np.float64).reshape(-1, 3)
+        w = np.ones(len(pts)) if w is None else np.asarray(w, np.float64)
+        o, og, oh, tape = self._forward2(pts, mu, p)
+        k = self.config.eta_max - 1.0
+        so = _sigmoid(o)
+        g0 = k * so  # G(o) = g - 1, and its derivatives G', G''
+        g1 = g0 * (1 - so)
+        g2 = g1 * (1 - 2 * so)
+        win, gw, hw = _window_hessian(self.box, pts)
+        eta = 1 + win * g0
+        ge = g0[:, None] * gw + (win * g1)[:, None] * og
+        om = np.einsum("nd,nd->n", mu, og)
+        mw = np.einsum("nd,nd->n", mu, gw)
+        hm = (
+            mw[:, None] * g1[:, None] * og
+            + g0[:, None] * np.einsum("nde,ne->nd", hw, mu)
+            + (g1 * om)[:, None] * gw
+            + win[:, None] * ((g2 * om)[:, None] * og + g1[:, None] * oh)
+        )
+        me = np.einsum("nd,nd->n", mu, ge)
+        ob = w * (me * win * g1 + eta * (mw * g1 + win * g2 * om))
+        omb = w * eta * win * g1
+        return eta, ge, hm, self._reverse2(ob, omb, mu, tape, p)
+
+    def regularizer(self, params: np.ndarray) -> tuple[float, np.ndarray]:
+        """Mean over fixed points where the window is 1 of (cell * d eta / dx_a)^2 over the axes,
+        cell = the finest level's cell (a discrete squared gradient in the voxel grid's
+        units), and its gradient with respect to params. The points (a jittered 16^3
+        lattice, fixed seed) do not change between calls: a resumed fit repeats exactly."""
+        p = np.asarray(params, np.float64)
+        pts = self._regularizer_points()
+        o, og, _, tape = self._forward2(pts, None, p, hessian=False)
+        k = self.config.eta_max - 1.0
+        so = _sigmoid(o)
+        g0 = k * so
+        g1 = g0 * (1 - so)
+        g2 = g1 * (1 - 2 * so)
+        win, gw, _ = _window_hessian(self.box, pts)
+        ge = g0[:, None] * gw + (win * g1)[:, None] * og
+        scale = (float(self.box.size.min()) / self.config.resolutions[-1]) ** 2 / 3 / len(pts)
+        # d|ge|^2 = 2 ge . d ge: the mu-derivative terms with mu = ge held fixed
+        om = np.einsum("nd,nd->n", ge, og)
+        mw = np.einsum("nd,nd->n", ge, gw)
+        ob = 2 * scale * (mw * g1 + win * g2 * om)
+        omb = 2 * scale * win * g1
+        return float(scale * (ge * ge).sum()), self._reverse2(ob, omb, ge, tape, p)
+
+    def _regularizer_points(self) -> np.ndarray:
+        if getattr(self, "_reg_pts", None) is None:
+            m = 16
+            rng = np.random.default_rng(12345)
+            cells = np.stack(np.meshgrid(*[np.arange(m)] * 3, indexing="ij"), -1).reshape(-1, 3)
+            u = (cells + rng.uniform(size=cells.shape)) / m
+            # where the window is 1: the learned field's oscillation, not the window's ramp
+            lo = np.asarray(self.box.lo) + 2 * self.box.margin
+            self._reg_pts = lo + u * (self.box.size - 4 * self.box.margin)
+        return self._reg_pts
 
     # --- files ------------------------------------------------------------------------------
     def save(self, path) -> None:

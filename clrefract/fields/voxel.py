@@ -1,17 +1,27 @@
-"""Voxel-grid index field: node samples of eta, trilinear (C0) or smoothstep (C1) interpolation.
+"""Voxel-grid index field: node values of eta, trilinear (C0), smoothstep (C1) or tricubic
+B-spline (C2) interpolation.
 
 Layout, shared with kernels_cl/field_voxel.cl and kernels_cl/voxel_adjoint.cl:
-- values[i, j, k] is eta at the node box.lo + (i hx, j hy, k hz), h = box.size / (n - 1):
+- values[i, j, k] belongs to the node box.lo + (i hx, j hy, k hz), h = box.size / (n - 1):
   node 0 lies on the low wall and node n - 1 on the high wall of each axis.
 - On the device the values are flattened in NumPy C order (x slowest):
   fd[(i * ny + j) * nz + k] = values[i, j, k]; fp holds nothing.
-- g(x) interpolates the cell holding x with per-axis weights 1 - s(t), s(t), t in [0, 1] the
-  position inside the cell; s(t) = t ("trilinear", C0) or s(t) = 3t^2 - 2t^3 ("smoothstep",
-  C1: continuous gradient, non-zero Hessian diagonal). Points outside the grid are clamped
-  onto it (their clamped coordinates have zero derivative). Trilinear has Dirac second
-  derivatives on the cell faces that a pointwise adjoint misses, so fits use smoothstep; its
-  price: s'(0) = s'(1) = 0, so the derivative across every node plane is zero and a linear
-  ramp of nodes becomes smooth terraces (trilinear reproduces it exactly).
+- Along each axis u = (x - lo) / h is clamped onto [0, n - 1] (a clamped coordinate has zero
+  derivative), the cell is i = min(floor(u), n - 2) and t = u - i in [0, 1].
+- "trilinear" and "smoothstep" interpolate the cell's 2 nodes per axis with weights
+  1 - s(t), s(t): s(t) = t (trilinear, C0) or s(t) = 3t^2 - 2t^3 (smoothstep, C1: continuous
+  gradient, non-zero Hessian diagonal). Trilinear has Dirac second derivatives on the cell
+  faces that a pointwise adjoint misses; smoothstep's price: s'(0) = s'(1) = 0, so the
+  derivative across every node plane is zero and a linear ramp of nodes becomes smooth
+  terraces (trilinear reproduces it exactly).
+- "bspline" blends the 4 nodes i-1 .. i+2 per axis (64 per point) with the uniform cubic
+  B-spline weights (1-t)^3/6, (3t^3 - 6t^2 + 4)/6, (-3t^3 + 3t^2 + 3t + 1)/6, t^3/6; node
+  indices outside the grid are clamped onto it (the border node repeats). C2, and it
+  reproduces linear functions exactly away from the border cells. Its values are control
+  points, not interpolated values: g at a node is (v[i-1] + 4 v[i] + v[i+1]) / 6 per axis, so
+  a grid sampled from a field (from_field: the plain node samples, no prefilter) is that
+  field slightly smoothed (by a kernel of width about one cell). The weights are non-negative
+  and sum to 1, so g stays within the range of the values.
 - eta = 1 + W (g - 1), W the box window (1 inside, 0 within the margin of the walls), so rays
   leave the box in straight lines. The gradient is the exact derivative of this expression.
 """
@@ -27,7 +37,7 @@ import numpy as np
 from ..errors import ClrefractError
 from .base import Box, Field, box_window
 
-INTERPS = ("trilinear", "smoothstep")
+INTERPS = ("trilinear", "smoothstep", "bspline")
 _CHUNK = 1 << 18  # points per block in the NumPy reference (bounds temporary memory)
 
 
@@ -44,18 +54,77 @@ def _axis(x, lo, h, n, smooth):
     return c, s, np.where(u == uc, ds, 0.0)
 
 
+def bspline_weights(t):
+    """Uniform cubic B-spline weights of nodes c-1 .. c+2 at t in [0, 1] (arrays (4, n)) and
+    their first and second derivatives in t; the same expressions as the kernels."""
+    t = np.asarray(t, np.float64)
+    s = 1 - t
+    t2 = t * t
+    t3 = t2 * t
+    r6 = 1 / 6
+    w = np.stack(
+        [s * s * s * r6, (3 * t3 - 6 * t2 + 4) * r6, (-3 * t3 + 3 * t2 + 3 * t + 1) * r6, t3 * r6]
+    )
+    d = np.stack([-0.5 * s * s, 1.5 * t2 - 2 * t, -1.5 * t2 + t + 0.5, 0.5 * t2])
+    dd = np.stack([s, 3 * t - 2, 1 - 3 * t, t])
+    return w, d, dd
+
+
+def _axis4(x, lo, h, n):
+    """B-spline along one axis: clamped node indices (4, n), weights, d/dx and d2/dx2."""
+    u = (x - lo) / h
+    uc = np.clip(u, 0.0, n - 1.0)
+    c = np.clip(np.floor(uc).astype(np.int64), 0, n - 2)
+    w, d, dd = bspline_weights(uc - c)
+    d1 = np.where(u == uc, 1.0 / h, 0.0)  # a clamped coordinate has zero derivative
+    idx = np.clip(c[None, :] + np.arange(-1, 3)[:, None], 0, n - 1)
+    return idx, w, d * d1, dd * (d1 / h)
+
+
 def _lerp(a, b, s):
     return a + (b - a) * s
 
 
-def interpolate(values, box: Box, pts, smooth: bool):
-    """The interpolant g of node `values` (no window) and its gradient at points (n, 3)."""
+def _interp_bspline(values, lo, h, p):
+    """Tricubic B-spline g and grad g at points p (n, 3); sums over z, then y, then x, in
+    the kernels' order (they fold the weights of clamped taps at the z border together)."""
+    n = values.shape
+    ix, wx, dx, _ = _axis4(p[:, 0], lo[0], h[0], n[0])
+    iy, wy, dy, _ = _axis4(p[:, 1], lo[1], h[1], n[1])
+    iz, wz, dz, _ = _axis4(p[:, 2], lo[2], h[2], n[2])
+    g = np.zeros(len(p))
+    gx, gy, gz = np.zeros(len(p)), np.zeros(len(p)), np.zeros(len(p))
+    for a in range(4):
+        y0, y1, y2 = np.zeros(len(p)), np.zeros(len(p)), np.zeros(len(p))
+        for b in range(4):
+            q = [values[ix[a], iy[b], iz[c]] for c in range(4)]
+            zc = q[0] * wz[0] + q[1] * wz[1] + q[2] * wz[2] + q[3] * wz[3]
+            zd = q[0] * dz[0] + q[1] * dz[1] + q[2] * dz[2] + q[3] * dz[3]
+            y0 += wy[b] * zc
+            y1 += dy[b] * zc
+            y2 += wy[b] * zd
+        g += wx[a] * y0
+        gx += dx[a] * y0
+        gy += wx[a] * y1
+        gz += wx[a] * y2
+    return g, np.stack([gx, gy, gz], axis=1)
+
+
+def interpolate(values, box: Box, pts, interp: str = "trilinear"):
+    """The interpolant g of node `values` (no window) and its gradient at points (n, 3);
+    interp is one of INTERPS."""
+    if interp not in INTERPS:
+        raise ClrefractError(f"voxel interp must be one of {INTERPS}, got {interp!r}")
     pts = np.asarray(pts, np.float64)
     lo, h = np.asarray(box.lo, float), box.size / (np.asarray(values.shape) - 1)
     g = np.empty(len(pts))
     grad = np.empty((len(pts), 3))
+    smooth = interp == "smoothstep"
     for a in range(0, len(pts), _CHUNK):
         p = pts[a : a + _CHUNK]
+        if interp == "bspline":
+            g[a : a + _CHUNK], grad[a : a + _CHUNK] = _interp_bspline(values, lo, h, p)
+            continue
         i, sx, dsx = _axis(p[:, 0], lo[0], h[0], values.shape[0], smooth)
         j, sy, dsy = _axis(p[:, 1], lo[1], h[1], values.shape[1], smooth)
         k, sz, dsz = _axis(p[:, 2], lo[2], h[2], values.shape[2], smooth)
@@ -108,7 +177,8 @@ class VoxelGrid(Field):
     """eta on a node-centred grid spanning `box` (see the module docstring for the layout).
 
     values: (nx, ny, nz) array of eta at the nodes, every entry finite.
-    interp: "trilinear" (C0) or "smoothstep" (C1).
+    interp: "trilinear" (C0), "smoothstep" (C1) or "bspline" (C2; the values are control
+            points, not interpolated values).
     eta_max: optional bound. With it the values must lie in [1, eta_max] and set_data()
              projects new values onto that range (a constrained fit); without it they are
              free (any finite value: finite-difference checks, experiments), but only grids
@@ -158,6 +228,7 @@ class VoxelGrid(Field):
             "VOX_NY": ny,
             "VOX_NZ": nz,
             "VOX_SMOOTH": int(self.smooth),
+            "VOX_BSPLINE": int(self.interp == "bspline"),
         }
 
     def params(self) -> np.ndarray:
@@ -181,7 +252,7 @@ class VoxelGrid(Field):
 
     def interpolant(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """g (n,) and grad g (n, 3) at points (n, 3): the interpolated nodes, no window."""
-        return interpolate(self.values, self.box, pts, self.smooth)
+        return interpolate(self.values, self.box, pts, self.interp)
 
     def eval(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pts = np.asarray(pts, np.float64)
@@ -241,10 +312,13 @@ class VoxelGrid(Field):
     def resampled_values(self, a: np.ndarray, res) -> np.ndarray:
         """An array `a` of node values on this grid (eta, Adam moments) resampled trilinearly
         onto a grid of res nodes per axis (int or 3 ints) over the same box. Trilinear even
-        for smoothstep grids: it does not copy the smoothstep plateaus at the old nodes."""
+        for smoothstep grids: it does not copy the smoothstep plateaus at the old nodes. For
+        B-spline grids this resamples the control points, not the spline: exact for linear
+        fields, otherwise the finer spline is a little less smooth than the old one (no exact
+        knot insertion)."""
         shape = _shape(res)
         a = np.asarray(a, np.float64).reshape(self.values.shape)
-        g, _ = interpolate(a, self.box, _nodes(self.box, shape), smooth=False)
+        g, _ = interpolate(a, self.box, _nodes(self.box, shape), "trilinear")
         return g.reshape(shape)
 
     def resampled(self, res) -> VoxelGrid:
@@ -263,7 +337,9 @@ class VoxelGrid(Field):
         eta_max: float | None = None,
     ) -> VoxelGrid:
         """Sample any field's eta (its NumPy reference) at the nodes of a res^3 grid
-        (res: int or 3 ints)."""
+        (res: int or 3 ints). The samples become the node values whatever the interp: for
+        "bspline" they are used as control points without a prefilter, so the grid's eta is
+        the field smoothed over about a cell (it does not pass through the samples)."""
         box = box or Box()
         shape = _shape(res)
         pts = _nodes(box, shape)
