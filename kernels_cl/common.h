@@ -143,6 +143,21 @@ inline REAL window_axis(REAL x, REAL lo, REAL hi, REAL *da, REAL *dda) {
     *dda = (smoother_dd1(d0) * s1 - 2 * p0 * p1 + s0 * smoother_dd1(d1)) / (m * m);
     return s0 * s1;
 }
+/* the same on the lane vectors */
+inline __attribute__((always_inline)) realv window_axis_v(realv x, REAL lo, REAL hi, realv *da,
+                                                          realv *dda) {
+    const REAL m = (REAL)MARGIN;
+    realv d0 = (x - RV(lo)) / RV(m) - RV(1), d1 = (RV(hi) - x) / RV(m) - RV(1);
+    realv s0 = smoother(d0), s1 = smoother(d1);
+    realv p0 = smoother_d(d0), p1 = smoother_d(d1);
+    realv in0 = SEL(RV(0), RV(1), d0 > RV(0) && d0 < RV(1));
+    realv in1 = SEL(RV(0), RV(1), d1 > RV(0) && d1 < RV(1));
+    realv q0 = in0 * RV(60) * d0 * (RV(1) - d0) * (RV(1) - RV(2) * d0);
+    realv q1 = in1 * RV(60) * d1 * (RV(1) - d1) * (RV(1) - RV(2) * d1);
+    *da = (p0 * s1 - s0 * p1) / RV(m);
+    *dda = (q0 * s1 - RV(2) * p0 * p1 + s0 * q1) / RV(m * m);
+    return s0 * s1;
+}
 inline REAL window_hess(REAL x, REAL y, REAL z, REAL *g, REAL *H) {
     REAL dax, ddax, day, dday, daz, ddaz;
     REAL ax = window_axis(x, (REAL)BOX_LO_X, (REAL)BOX_HI_X, &dax, &ddax);

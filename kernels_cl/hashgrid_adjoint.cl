@@ -327,21 +327,6 @@ HG_INLINE void hg_softplus_reverse(const realv *S, const realv *Q, realv *ab, re
     }
 }
 
-/* Box window W, its gradient and Hess(W) mu, on the vectors. */
-HG_INLINE realv hg_window_axis(realv x, REAL lo, REAL hi, realv *da, realv *dda) {
-    const REAL m = (REAL)MARGIN;
-    realv d0 = (x - RV(lo)) / m - RV(1), d1 = (RV(hi) - x) / m - RV(1);
-    realv s0 = smoother(d0), s1 = smoother(d1);
-    realv p0 = smoother_d(d0), p1 = smoother_d(d1);
-    realv in0 = SEL(RV(0), RV(1), d0 > RV(0) && d0 < RV(1));
-    realv in1 = SEL(RV(0), RV(1), d1 > RV(0) && d1 < RV(1));
-    realv q0 = in0 * RV(60) * d0 * (RV(1) - d0) * (RV(1) - RV(2) * d0);
-    realv q1 = in1 * RV(60) * d1 * (RV(1) - d1) * (RV(1) - RV(2) * d1);
-    *da = (p0 * s1 - s0 * p1) / m;
-    *dda = (q0 * s1 - RV(2) * p0 * p1 + s0 * q1) / (m * m);
-    return s0 * s1;
-}
-
 /* On CPUs (LANES > 1) PoCL runs a work-group as a loop over its work-items and gives every
  * work-item its own copy of the kernel's private arrays, all on one thread's stack: with
  * the ~100 KB of scratch below and work-groups of hundreds of work-items that overflows.
@@ -394,9 +379,9 @@ HG_ADJ_FN realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx,
     realv so = hg_sigmoid(o);
     realv G = k * so, G1 = G * (RV(1) - so), G2 = G1 * (RV(1) - RV(2) * so);
     realv Wx, Wy, Wz, Wxx, Wyy, Wzz;
-    realv wax = hg_window_axis(x, (REAL)BOX_LO_X, (REAL)BOX_HI_X, &Wx, &Wxx);
-    realv way = hg_window_axis(y, (REAL)BOX_LO_Y, (REAL)BOX_HI_Y, &Wy, &Wyy);
-    realv waz = hg_window_axis(z, (REAL)BOX_LO_Z, (REAL)BOX_HI_Z, &Wz, &Wzz);
+    realv wax = window_axis_v(x, (REAL)BOX_LO_X, (REAL)BOX_HI_X, &Wx, &Wxx);
+    realv way = window_axis_v(y, (REAL)BOX_LO_Y, (REAL)BOX_HI_Y, &Wy, &Wyy);
+    realv waz = window_axis_v(z, (REAL)BOX_LO_Z, (REAL)BOX_HI_Z, &Wz, &Wzz);
     realv Wn = wax * way * waz;
     realv gWx = Wx * way * waz, gWy = wax * Wy * waz, gWz = wax * way * Wz;
     realv Hxx = Wxx * way * waz, Hyy = wax * Wyy * waz, Hzz = wax * way * Wzz;

@@ -51,24 +51,11 @@ VOX_INLINE void voxel_flush_lane(__global REAL *grad, int cell, REAL (*acc)[LANE
 
 /* Box window W for all lanes with its gradient g and Hessian H (xx yy zz xy xz yz), as
  * common.h's window_hess. */
-VOX_INLINE realv vox_window_axis(realv x, REAL lo, REAL hi, realv *da, realv *dda) {
-    const REAL m = (REAL)MARGIN;
-    realv d0 = (x - RV(lo)) / RV(m) - RV(1), d1 = (RV(hi) - x) / RV(m) - RV(1);
-    realv s0 = smoother(d0), s1 = smoother(d1);
-    realv p0 = smoother_d(d0), p1 = smoother_d(d1);
-    realv in0 = SEL(RV(0), RV(1), d0 > RV(0) && d0 < RV(1));
-    realv in1 = SEL(RV(0), RV(1), d1 > RV(0) && d1 < RV(1));
-    realv q0 = in0 * RV(60) * d0 * (RV(1) - d0) * (RV(1) - RV(2) * d0);
-    realv q1 = in1 * RV(60) * d1 * (RV(1) - d1) * (RV(1) - RV(2) * d1);
-    *da = (p0 * s1 - s0 * p1) / RV(m);
-    *dda = (q0 * s1 - RV(2) * p0 * p1 + s0 * q1) / RV(m * m);
-    return s0 * s1;
-}
 VOX_INLINE realv vox_window_hess(realv x, realv y, realv z, realv *g, realv *H) {
     realv dax, ddax, day, dday, daz, ddaz;
-    realv ax = vox_window_axis(x, (REAL)BOX_LO_X, (REAL)BOX_HI_X, &dax, &ddax);
-    realv ay = vox_window_axis(y, (REAL)BOX_LO_Y, (REAL)BOX_HI_Y, &day, &dday);
-    realv az = vox_window_axis(z, (REAL)BOX_LO_Z, (REAL)BOX_HI_Z, &daz, &ddaz);
+    realv ax = window_axis_v(x, (REAL)BOX_LO_X, (REAL)BOX_HI_X, &dax, &ddax);
+    realv ay = window_axis_v(y, (REAL)BOX_LO_Y, (REAL)BOX_HI_Y, &day, &dday);
+    realv az = window_axis_v(z, (REAL)BOX_LO_Z, (REAL)BOX_HI_Z, &daz, &ddaz);
     g[0] = dax * ay * az; g[1] = ax * day * az; g[2] = ax * ay * daz;
     H[0] = ddax * ay * az; H[1] = ax * dday * az; H[2] = ax * ay * ddaz;
     H[3] = dax * day * az; H[4] = dax * ay * daz; H[5] = ax * day * daz;

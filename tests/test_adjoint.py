@@ -3,30 +3,14 @@ renderer (float64), its convergence with the step, memory, and queue independenc
 
 import numpy as np
 import pytest
+from fdcheck import directional_errors, smooth_env
 
-from clrefract.envmap import EnvMap, pixel_directions
 from clrefract.fields.base import Box
 from clrefract.fields.voxel import VoxelGrid
 from clrefract.gradient import GradientEngine
-from clrefract.loss import photometric_loss
 from clrefract.runtime import Runtime
 
 BOX = Box(margin=4.0)
-
-
-def smooth_env():
-    """A smooth analytic environment at high resolution: the loss is smooth enough for
-    finite differences (bilinear texel kinks are far below the FD perturbation)."""
-    d = pixel_directions(2048, 1024)
-    img = np.stack(
-        [
-            1 + 0.5 * np.sin(3 * d[..., 0] + 1) * np.cos(2 * d[..., 2]),
-            1 + 0.5 * np.cos(4 * d[..., 1]),
-            1 + 0.3 * d[..., 2],
-        ],
-        -1,
-    )
-    return EnvMap(img * 0.4)
 
 
 def voxel_scene(n_rays=300, res=12, seed=0):
@@ -43,30 +27,23 @@ def voxel_scene(n_rays=300, res=12, seed=0):
     return vals, o, d, env, target
 
 
-def fd_errors(interp, step, n_dirs=3, seed=1, checkpoint_every=0):
+def fd_errors(interp, step, n_dirs=3, seed=1, checkpoint_every=0, eps=1e-6, z_nodes=None):
+    """Relative errors of the adjoint gradient along random directions.
+    eps: 1e-6 lets some exit directions cross a texel edge of the bilinear environment (a
+    kink in the loss), a floor of ~5e-5 under the error; 1e-7 goes below it.
+    z_nodes: keep only these z-planes of the scene's grid."""
     vals, o, d, env, target = voxel_scene()
+    if z_nodes is not None:
+        vals = np.ascontiguousarray(vals[:, :, z_nodes])
     field = VoxelGrid(vals, BOX, interp)
     eng = GradientEngine(
         field, BOX, step=step, precision="float64", lanes=4, checkpoint_every=checkpoint_every
     )
     res = eng.loss_and_grad(o, d, target, env)
     p0 = vals.ravel().copy()
-
-    def loss(p):
-        eng.set_params(p)
-        tr = eng.tracer.trace(o, d)
-        ok = (tr.status == 0).astype(float)
-        return photometric_loss(env, tr.last_velocity, target, weight=ok)[0]
-
     rng = np.random.default_rng(seed)
-    errs = []
-    for _ in range(n_dirs):
-        u = rng.normal(size=p0.shape)
-        eps = 1e-6
-        fd = (loss(p0 + eps * u) - loss(p0 - eps * u)) / (2 * eps)
-        errs.append(abs(fd - res.grad @ u) / abs(fd))
-    eng.set_params(p0)
-    return np.array(errs), res
+    dirs = [rng.normal(size=p0.shape) for _ in range(n_dirs)]
+    return directional_errors(eng, o, d, env, target, res.grad, p0, dirs, eps), res
 
 
 def test_voxel_adjoint_matches_finite_differences_and_converges_with_step():
@@ -164,39 +141,11 @@ def test_device_buffers_do_not_grow_with_the_step_count(precision, monkeypatch):
 # --- tricubic B-spline voxel grid ----------------------------------------------------------
 
 
-def fd_errors_fine_eps(interp, step, eps=1e-7, n_dirs=3, seed=1, z_nodes=None):
-    """fd_errors with a smaller FD perturbation: below ~1e-5 relative error a perturbation of
-    1e-6 lets some exit directions cross a texel edge of the bilinear environment map (a kink
-    in the loss), which puts a floor of ~5e-5 under the error whatever the step.
-    z_nodes: keep only these z-planes of the scene's grid."""
-    vals, o, d, env, target = voxel_scene()
-    if z_nodes is not None:
-        vals = np.ascontiguousarray(vals[:, :, z_nodes])
-    eng = GradientEngine(VoxelGrid(vals, BOX, interp), BOX, step=step, precision="float64", lanes=4)
-    res = eng.loss_and_grad(o, d, target, env)
-    p0 = vals.ravel().copy()
-
-    def loss(p):
-        eng.set_params(p)
-        tr = eng.tracer.trace(o, d)
-        ok = (tr.status == 0).astype(float)
-        return photometric_loss(env, tr.last_velocity, target, weight=ok)[0]
-
-    rng = np.random.default_rng(seed)
-    errs = []
-    for _ in range(n_dirs):
-        u = rng.normal(size=p0.shape)
-        fd = (loss(p0 + eps * u) - loss(p0 - eps * u)) / (2 * eps)
-        errs.append(abs(fd - res.grad @ u) / abs(fd))
-    eng.set_params(p0)
-    return np.array(errs), res
-
-
 def test_bspline_voxel_adjoint_matches_finite_differences_and_converges_with_step():
     """C2 weights: Hess(eta) is continuous, so the continuous adjoint converges to the discrete
     gradient fast (measured median 1.3e-4 at step 2, 3e-7 at step 0.5)."""
-    coarse, r_coarse = fd_errors_fine_eps("bspline", 2.0)
-    fine, r_fine = fd_errors_fine_eps("bspline", 0.5)
+    coarse, r_coarse = fd_errors("bspline", 2.0, eps=1e-7)
+    fine, r_fine = fd_errors("bspline", 0.5, eps=1e-7)
     assert np.median(fine) < 1e-5, fine
     assert np.median(fine) < np.median(coarse) / 20, (coarse, fine)
     assert r_fine.drift.max() < r_coarse.drift.max() / 10
@@ -226,5 +175,5 @@ def test_bspline_adjoint_is_the_same_for_every_lane_width_and_precision():
 
 def test_bspline_adjoint_with_3_nodes_along_z():
     """Under 4 nodes along z the kernels gather and splat clamped taps one by one."""
-    errs, _ = fd_errors_fine_eps("bspline", 0.5, z_nodes=[0, 5, 11])
+    errs, _ = fd_errors("bspline", 0.5, eps=1e-7, z_nodes=[0, 5, 11])
     assert np.median(errs) < 3e-5, errs  # measured 2e-6
