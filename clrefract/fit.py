@@ -79,6 +79,9 @@ class FitConfig:
     device: str = ""
     seed: int = 0
     checkpoint_every: int = 50
+    # loss on a fixed batch of training rays every this many iterations (0: never); the run
+    # keeps the parameters that scored best there (at the final grid resolution)
+    validate_every: int = 25
     test_views: int = -1  # test views rendered at the end (-1: all)
 
     def validate(self) -> None:
@@ -198,6 +201,7 @@ class Fit:
         self._hulls: dict = {}
         self._free = None
         self.init_info: dict = {}
+        self.best: tuple[float, int, np.ndarray | None] = (np.inf, 0, None)  # loss, it, params
         self.field = None
         self.engine = None
         self.adam = None
@@ -362,7 +366,17 @@ class Fit:
     def save_checkpoint(self) -> None:
         shape = np.array(self.field.values.shape if self.cfg.field == "voxel" else [0])
         with atomic_path(self.checkpoint_path, suffix=".npz") as tmp:
-            np.savez(tmp, params=self.params, iteration=self.it, shape=shape, **self.adam.state())
+            best_loss, best_it, best_params = self.best
+            np.savez(
+                tmp,
+                params=self.params,
+                iteration=self.it,
+                shape=shape,
+                best_loss=best_loss,
+                best_iteration=best_it,
+                best_params=self.params if best_params is None else best_params,
+                **self.adam.state(),
+            )
 
     def load_checkpoint(self) -> None:
         path = self.checkpoint_path
@@ -370,6 +384,7 @@ class Fit:
             with np.load(path) as z:
                 params, it, shape = z["params"], int(z["iteration"]), z["shape"]
                 state = {k: z[k] for k in ("adam_m", "adam_v", "adam_t")}
+                best = (float(z["best_loss"]), int(z["best_iteration"]), z["best_params"])
         except FileNotFoundError:
             raise ClrefractError(f"{path}: no checkpoint to resume from") from None
         except Exception as exc:  # noqa: BLE001 - any damage is the user's to know about
@@ -387,8 +402,38 @@ class Fit:
         self.adam = Adam(len(self.params), self._groups())
         self.adam.load_state(state)
         self.it = it
+        self.best = best if np.isfinite(best[0]) else (np.inf, 0, None)
 
     # --- the loop ----------------------------------------------------------------------------
+    def validation_loss(self) -> float:
+        """Loss on a fixed batch of training rays, against the sharp environment."""
+        rng = np.random.default_rng([self.cfg.seed, 11])
+        idx = rng.integers(0, len(self.origins), size=min(self.cfg.batch, len(self.origins)))
+        r = self.engine.tracer.trace(self.origins[idx], self.dirs[idx])
+        ok = (r.status == 0).astype(float)
+        return float(
+            photometric_loss(self._env_full, r.direction, self.rgb[idx], ok, self.cfg.loss)[0]
+        )
+
+    def _track_best(self) -> float | None:
+        every = self.cfg.validate_every
+        if every <= 0 or (self.it % every and self.it != self.cfg.iterations):
+            return None
+        if self.cfg.field == "voxel" and self.field.values.shape[0] != self.cfg.res:
+            return None  # earlier grids are not candidates
+        loss = self.validation_loss()
+        if loss < self.best[0]:
+            self.best = (loss, self.it, self.params.copy())
+        return loss
+
+    def use_best(self) -> None:
+        """Load the parameters that scored best on the validation batch."""
+        _, _, params = self.best
+        if params is not None and len(params) == len(self.params):
+            self.params[:] = params
+            self.field.set_data(self.params)
+            self.engine.tracer.upload_field()
+
     def step(self) -> dict:
         self._maybe_regrid()
         idx = batch_indices(self.cfg, self.it, len(self.origins))
@@ -443,7 +488,12 @@ class Fit:
                             f"interrupted at iteration {self.it}; checkpoint saved in "
                             f"{self.out}: continue with --resume"
                         )
+                    if self.it == 0 and not np.isfinite(self.best[0]):
+                        self._track_best()  # the start is a candidate too
                     m = self.step()
+                    val = self._track_best()
+                    if val is not None:
+                        m["val_loss"] = val
                     mf.write(json.dumps(m) + "\n")
                     mf.flush()
                     bar.update(
@@ -465,6 +515,7 @@ class Fit:
                 "rate or step."
             ) from None
         self.save_checkpoint()
+        self.use_best()
         self.field.save(self.out / "field.npz")
         return self.finish()
 

@@ -176,6 +176,8 @@ def write_fit_report(fit) -> dict:
         "iterations": fit.it,
         "train_seconds": float(sum(r["seconds"] for r in rows)),
         "final_loss": rows[-1]["loss"] if rows else None,
+        "best_iteration": fit.best[1],
+        "best_val_loss": float(fit.best[0]) if np.isfinite(fit.best[0]) else None,
         **score_field(fit, out_dir=out / "test"),
     }
     with atomic_path(out / "results.json", suffix=".json") as tmp:

@@ -152,3 +152,18 @@ def test_fit_cli_refuses_to_overwrite_and_renders_the_run(blob_dataset, tmp_path
         == 0
     )
     assert len(list(out.glob("*.exr"))) == 1
+
+
+def test_run_keeps_the_parameters_that_validated_best(blob_dataset, tmp_path):
+    from clrefract.fields import load_field_file
+
+    res = run_fit(blob_dataset, tmp_path / "run", _cfg(iterations=20, validate_every=5, res_schedule=()))
+    rows = [json.loads(ln) for ln in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    vals = {r["iteration"]: r["val_loss"] for r in rows if "val_loss" in r}
+    assert sorted(vals) == [5, 10, 15, 20]
+    assert res["best_iteration"] in (0, *vals)
+    with np.load(tmp_path / "run" / "checkpoint.npz") as z:
+        best = z["best_params"]
+        assert float(z["best_loss"]) <= min(vals.values())
+    saved = load_field_file(tmp_path / "run" / "field.npz")
+    assert np.allclose(saved.values.ravel(), best)
