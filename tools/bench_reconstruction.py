@@ -54,7 +54,9 @@ def bench_scene(scene: str, args) -> dict:
     empty = VoxelGrid(np.ones((8, 8, 8)), probe.box)
     row["empty"] = score_field(probe, empty)
     truth = scene_truth(probe.ds)
-    ceiling = VoxelGrid.from_field(truth, probe.box, args.grid, eta_max=probe.eta_max)
+    ceiling = VoxelGrid.from_field(
+        truth, probe.box, args.grid, interp=cfg.interp, eta_max=probe.eta_max
+    )
     row["ceiling"] = score_field(probe, ceiling)
     t0 = time.perf_counter()
     probe.start()
