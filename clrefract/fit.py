@@ -270,26 +270,36 @@ class Fit:
                 self._free = hull.dilated(self.cfg.free_cells).ravel()
 
     def _fill_hull(self) -> None:
-        """Fill the hull with the index that gives the lowest loss on a fixed batch."""
+        """Fill the hull with the index, and grow or shrink it by the offset, that give the
+        lowest loss on a fixed batch (line searches: index, offset, index again)."""
         hull = self._hull(self.field.values.shape[0])
         if not hull.found:
             self.stream.write("start: no refraction mask agrees across views; eta = 1\n")
             return
-        occ = hull.occupancy.ravel()
         rng = np.random.default_rng([self.cfg.seed, 7])
         idx = rng.integers(0, len(self.origins), size=min(self.cfg.batch, len(self.origins)))
-        hi = self.ds.scene.eta_range[1]
-        trials = []
-        for eta in [1.0, *np.linspace(1.0, hi, 9)[1:]]:
-            self.params[:] = 1.0 + (eta - 1.0) * occ
+
+        def loss_of(eta: float, offset: float) -> float:
+            self.params[:] = 1.0 + (eta - 1.0) * hull.shell(offset).ravel()
             self.field.set_data(self.params)
             self.engine.tracer.upload_field()
             r = self.engine.tracer.trace(self.origins[idx], self.dirs[idx])
-            loss = photometric_loss(
+            return photometric_loss(
                 self._env_full, r.direction, self.rgb[idx], space=self.cfg.loss
             )[0]
-            trials.append((loss, float(eta)))
-        loss, eta = min(trials)
+
+        etas = np.linspace(1.0, self.ds.scene.eta_range[1], 9)
+        empty = loss_of(1.0, 0.0)
+        loss, eta = min((loss_of(e, 0.0), float(e)) for e in etas[1:])
+        offset = 0.0
+        if loss < empty:
+            step = hull.width / 2
+            loss, offset = min((loss_of(eta, o), o) for o in step * np.arange(-3, 2))
+            fine = eta + (etas[1] - etas[0]) * np.linspace(-0.75, 0.75, 7)
+            loss, eta = min((loss_of(e, offset), float(e)) for e in fine if e > 1)
+        if not loss < empty:
+            loss, eta, offset = empty, 1.0, 0.0
+        occ = hull.shell(offset).ravel()
         self.params[:] = 1.0 + (eta - 1.0) * occ
         self.field.set_data(self.params)
         self.engine.tracer.upload_field()
@@ -297,12 +307,14 @@ class Fit:
             "hull_fraction": float((occ > 0.5).mean()),
             "mask_fraction": hull.mask_fraction,
             "eta": eta,
-            "loss": loss,
-            "loss_empty": trials[0][0],
+            "offset_mm": float(offset),
+            "loss": float(loss),
+            "loss_empty": float(empty),
         }
         self.stream.write(
-            f"start: visual hull {100 * self.init_info['hull_fraction']:.2f}% of the box "
-            f"filled with eta {eta:.3f} (loss {loss:.4g}; empty {trials[0][0]:.4g})\n"
+            f"start: visual hull {100 * self.init_info['hull_fraction']:.2f}% of the box, "
+            f"offset {offset:+.2f} mm, filled with eta {eta:.3f} (loss {loss:.4g}; empty "
+            f"{empty:.4g})\n"
         )
         (self.out / "init.json").write_text(json.dumps(self.init_info, indent=2))
 

@@ -24,8 +24,18 @@ from .loss import srgb
 
 @dataclass
 class Hull:
-    occupancy: np.ndarray  # (n, n, n) float in [0, 1] on the voxel nodes, 1 inside
+    distance: np.ndarray  # (n, n, n) signed distance (mm) to the hull on the nodes, + inside
+    width: float  # mm over which the occupancy goes from 0 to 1
     mask_fraction: float  # mean fraction of training pixels marked as refracting
+
+    def shell(self, offset: float = 0.0) -> np.ndarray:
+        """Occupancy in [0, 1] of the hull grown by `offset` mm (shrunk when negative)."""
+        t = np.clip((self.distance + offset) / self.width + 0.5, 0.0, 1.0)
+        return t * t * t * (t * (t * 6 - 15) + 10)
+
+    @property
+    def occupancy(self) -> np.ndarray:
+        return self.shell(0.0)
 
     @property
     def found(self) -> bool:
@@ -125,7 +135,5 @@ def visual_hull(
     wall = np.min(np.minimum(pts - lo, hi - pts), axis=1) - 2 * m
     sd = np.minimum(sd, wall)
     w = width or float(np.max((hi - lo) / (res - 1)))
-    t = np.clip(sd / w + 0.5, 0.0, 1.0)
-    occ = t * t * t * (t * (t * 6 - 15) + 10)
     frac = float(np.mean([mk.mean() for mk in masks])) if masks else 0.0
-    return Hull(occ.reshape(res, res, res), frac)
+    return Hull(sd.reshape(res, res, res), w, frac)
