@@ -291,12 +291,15 @@ class Fit:
         etas = np.linspace(1.0, self.ds.scene.eta_range[1], 9)
         empty = loss_of(1.0, 0.0)
         loss, eta = min((loss_of(e, 0.0), float(e)) for e in etas[1:])
+        # a visual hull is too big where the views cannot see in (concavities, or a prism's
+        # rays through parallel faces), so shrunk hulls get a full index search too
         offset = 0.0
-        if loss < empty:
-            step = hull.width / 2
-            loss, offset = min((loss_of(eta, o), o) for o in step * np.arange(-3, 2))
-            fine = eta + (etas[1] - etas[0]) * np.linspace(-0.75, 0.75, 7)
-            loss, eta = min((loss_of(e, offset), float(e)) for e in fine if e > 1)
+        for o in hull.width / 2 * np.array([-3.0, -2.0, -1.0, 1.0]):
+            trial = min((loss_of(e, o), float(e)) for e in etas[1:])
+            if trial[0] < loss:
+                (loss, eta), offset = trial, float(o)
+        fine = eta + (etas[1] - etas[0]) * np.linspace(-0.75, 0.75, 7)
+        loss, eta = min([(loss, eta)] + [(loss_of(e, offset), float(e)) for e in fine if e > 1])
         if not loss < empty:
             loss, eta, offset = empty, 1.0, 0.0
         occ = hull.shell(offset).ravel()
