@@ -40,7 +40,7 @@ class FitConfig:
     field: str = "voxel"  # "voxel" or "hashgrid"
     # voxel grid: final resolution, and the coarse-to-fine resolutions before it
     res: int = 64
-    res_schedule: tuple = (16, 32)
+    res_schedule: tuple = ()  # e.g. (16, 32); the hull start wants the final grid at once
     interp: str = "bspline"  # C2 tricubic B-spline; "smoothstep" (C1) or "trilinear"
     # hash grid
     levels: int = 8
