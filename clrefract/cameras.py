@@ -168,6 +168,19 @@ def _find_image(base: Path, file_path: str) -> Path | None:
     return None
 
 
+def _focal(path: Path, where: str, p: dict, axis: str, size: int) -> float | None:
+    """Focal length in pixels along `axis` from fl_<axis> or camera_angle_<axis>, or None."""
+    if f"fl_{axis}" in p:
+        return _number(path, where, f"fl_{axis}", p[f"fl_{axis}"], positive=True)
+    key = f"camera_angle_{axis}"
+    if key not in p:
+        return None
+    angle = _number(path, where, key, p[key], positive=True)
+    if angle >= math.pi:
+        raise ClrefractError(f"{path}: {where}'{key}' must be below pi radians")
+    return size / (2.0 * math.tan(angle / 2.0))
+
+
 def _frame_camera(path: Path, top: dict, frame, k: int) -> Camera:
     where = f"frames[{k}]: "
     if not isinstance(frame, dict):
@@ -198,24 +211,11 @@ def _frame_camera(path: Path, top: dict, frame, k: int) -> Camera:
         w = _size(path, where, "w", p["w"]) if "w" in p else w
         h = _size(path, where, "h", p["h"]) if "h" in p else h
 
-    if "fl_x" in p:
-        fl_x = _number(path, where, "fl_x", p["fl_x"], positive=True)
-    elif "camera_angle_x" in p:
-        ax = _number(path, where, "camera_angle_x", p["camera_angle_x"], positive=True)
-        if ax >= math.pi:
-            raise ClrefractError(f"{path}: {where}'camera_angle_x' must be below pi radians")
-        fl_x = w / (2.0 * math.tan(ax / 2.0))
-    else:
+    fl_x = _focal(path, where, p, "x", w)
+    if fl_x is None:
         raise ClrefractError(f"{path}: {where}missing intrinsics: need 'camera_angle_x' or 'fl_x'")
-    if "fl_y" in p:
-        fl_y = _number(path, where, "fl_y", p["fl_y"], positive=True)
-    elif "camera_angle_y" in p:
-        ay = _number(path, where, "camera_angle_y", p["camera_angle_y"], positive=True)
-        if ay >= math.pi:
-            raise ClrefractError(f"{path}: {where}'camera_angle_y' must be below pi radians")
-        fl_y = h / (2.0 * math.tan(ay / 2.0))
-    else:
-        fl_y = fl_x  # square pixels
+    fl_y = _focal(path, where, p, "y", h)
+    fl_y = fl_x if fl_y is None else fl_y  # square pixels
     cx = _number(path, where, "cx", p["cx"]) if "cx" in p else w / 2.0
     cy = _number(path, where, "cy", p["cy"]) if "cy" in p else h / 2.0
     name = Path(file_path).name if file_path else f"frame_{k:03d}"

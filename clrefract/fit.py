@@ -276,17 +276,13 @@ class Fit:
         if not hull.found:
             self.stream.write("start: no refraction mask agrees across views; eta = 1\n")
             return
-        rng = np.random.default_rng([self.cfg.seed, 7])
-        idx = rng.integers(0, len(self.origins), size=min(self.cfg.batch, len(self.origins)))
+        idx = self._fixed_batch(7)
 
         def loss_of(eta: float, offset: float) -> float:
             self.params[:] = 1.0 + (eta - 1.0) * hull.shell(offset).ravel()
             self.field.set_data(self.params)
             self.engine.tracer.upload_field()
-            r = self.engine.tracer.trace(self.origins[idx], self.dirs[idx])
-            return photometric_loss(
-                self._env_full, r.direction, self.rgb[idx], space=self.cfg.loss
-            )[0]
+            return self._forward_loss(idx)
 
         etas = np.linspace(1.0, self.ds.scene.eta_range[1], 9)
         empty = loss_of(1.0, 0.0)
@@ -420,15 +416,22 @@ class Fit:
         self.best = best if np.isfinite(best[0]) else (np.inf, 0, None)
 
     # --- the loop ----------------------------------------------------------------------------
-    def validation_loss(self) -> float:
-        """Loss on a fixed batch of training rays, against the sharp environment."""
-        rng = np.random.default_rng([self.cfg.seed, 11])
-        idx = rng.integers(0, len(self.origins), size=min(self.cfg.batch, len(self.origins)))
+    def _fixed_batch(self, tag: int) -> np.ndarray:
+        """A batch of training rays that depends only on (seed, tag)."""
+        rng = np.random.default_rng([self.cfg.seed, tag])
+        return rng.integers(0, len(self.origins), size=min(self.cfg.batch, len(self.origins)))
+
+    def _forward_loss(self, idx: np.ndarray) -> float:
+        """Loss of the current field on training rays idx, against the sharp environment
+        (forward pass only)."""
         r = self.engine.tracer.trace(self.origins[idx], self.dirs[idx])
         ok = (r.status == 0).astype(float)
         return float(
             photometric_loss(self._env_full, r.direction, self.rgb[idx], ok, self.cfg.loss)[0]
         )
+
+    def validation_loss(self) -> float:
+        return self._forward_loss(self._fixed_batch(11))
 
     def _track_best(self) -> float | None:
         every = self.cfg.validate_every
@@ -582,7 +585,8 @@ def _truncate_metrics(path: Path, iteration: int) -> None:
         tmp.write_text("".join(ln + "\n" for ln in keep))
 
 
-def run_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stream=None) -> dict:
+def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stream=None) -> Fit:
+    """A run ready to go: a new run folder with its field at the start, or a resumed one."""
     out = Path(out)
     if resume:
         if not (out / "config.toml").is_file():
@@ -611,7 +615,11 @@ def run_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stre
         )
         (out / "metrics.jsonl").write_text("")
         fit.start()
-    return fit.run()
+    return fit
+
+
+def run_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stream=None) -> dict:
+    return prepare_fit(dataset, out, cfg, resume, stream).run()
 
 
 def field_from_run(run: Path):

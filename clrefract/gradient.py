@@ -77,8 +77,18 @@ class GradientEngine:
             raise ClrefractError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
         # 0: constant memory; C > 0: forward states kept every C steps bound the drift
         self.checkpoint_every = int(checkpoint_every)
+        self._ckpt: dict[int, tuple] = {}
         self._k_adjoint = self.tracer.kernels.adjoint_rays
         self.n_shared = int(getattr(field, "n_shared", 0))
+
+    def _checkpoint_buffer(self, queue, size: int):
+        """The queue's checkpoint buffer, kept across calls and grown when a batch needs it:
+        each queue has its own, as their kernels run at the same time."""
+        buf, cap = self._ckpt.get(id(queue), (None, -1))
+        if cap < size:
+            buf = self.tracer.checkpoint_buffer(size, self.checkpoint_every)
+            self._ckpt[id(queue)] = (buf, size)
+        return buf
 
     def set_params(self, params: np.ndarray) -> None:
         self.field.set_data(params)
@@ -99,7 +109,7 @@ class GradientEngine:
             outs = [np.empty(size, tr.dtype) for _ in range(6)]
             status, steps = np.empty(size, np.int32), np.empty(size, np.int32)
             last = [np.empty(size, tr.dtype) for _ in range(3)]
-            ckpt = tr.checkpoint_buffer(size, self.checkpoint_every)
+            ckpt = self._checkpoint_buffer(q, size)
             args = [tr.dtype(tr.step), np.int32(tr.max_steps), *o, *d]
             args += [Out(a) for a in outs + [status, steps] + last]
             args += [np.int32(self.checkpoint_every), ckpt]

@@ -86,16 +86,14 @@ def _tracer(fit, field):
     )
 
 
-def render_test_views(
-    fit, out_dir: Path | None, limit: int = -1, field=None, tracer=None
-) -> list[dict]:
-    """Render the dataset's test views with the fitted field (or `field`); PSNR and SSIM per
-    view. Images go to out_dir (rendering beside the photograph) unless it is None."""
+def render_test_views(fit, out_dir: Path | None, limit: int = -1, tracer=None) -> list[dict]:
+    """Render the dataset's test views with the fitted field (or `tracer`'s); PSNR and SSIM
+    per view. Images go to out_dir (rendering beside the photograph) unless it is None."""
     from .render import render_camera
 
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
-    tracer = tracer or _tracer(fit, field or fit.field)
+    tracer = tracer or _tracer(fit, fit.field)
     env = fit.ds.envmap()
     cams = fit.ds.test if limit < 0 else fit.ds.test[:limit]
     rows = []

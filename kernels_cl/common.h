@@ -122,28 +122,8 @@ inline void atomic_add_real(volatile __global REAL *p, REAL v) {
 }
 #endif
 
-/* Scalar box window with gradient and Hessian (xx yy zz xy xz yz), for the backward pass. */
-inline REAL smoother_dd1(REAL t) {
-    return (t > (REAL)0 && t < (REAL)1) ? (REAL)60 * t * (1 - t) * (1 - 2 * t) : (REAL)0;
-}
-inline REAL smoother1(REAL t) {
-    t = clamp(t, (REAL)0, (REAL)1);
-    return t * t * t * (t * (t * 6 - 15) + 10);
-}
-inline REAL smoother_d1(REAL t) {
-    return (t > (REAL)0 && t < (REAL)1) ? (REAL)30 * t * t * (t * (t - 2) + 1) : (REAL)0;
-}
-/* one axis: a(x) = s(d0) s(d1), d0 = (x - lo)/m - 1, d1 = (hi - x)/m - 1 */
-inline REAL window_axis(REAL x, REAL lo, REAL hi, REAL *da, REAL *dda) {
-    const REAL m = (REAL)MARGIN;
-    REAL d0 = (x - lo) / m - 1, d1 = (hi - x) / m - 1;
-    REAL s0 = smoother1(d0), s1 = smoother1(d1);
-    REAL p0 = smoother_d1(d0), p1 = smoother_d1(d1);
-    *da = (p0 * s1 - s0 * p1) / m;
-    *dda = (smoother_dd1(d0) * s1 - 2 * p0 * p1 + s0 * smoother_dd1(d1)) / (m * m);
-    return s0 * s1;
-}
-/* the same on the lane vectors */
+/* Box window along one axis, a(x) = s(d0) s(d1) with d0 = (x - lo)/m - 1,
+ * d1 = (hi - x)/m - 1, with its first and second derivatives (for the backward pass). */
 inline __attribute__((always_inline)) realv window_axis_v(realv x, REAL lo, REAL hi, realv *da,
                                                           realv *dda) {
     const REAL m = (REAL)MARGIN;
@@ -158,11 +138,13 @@ inline __attribute__((always_inline)) realv window_axis_v(realv x, REAL lo, REAL
     *dda = (q0 * s1 - RV(2) * p0 * p1 + s0 * q1) / RV(m * m);
     return s0 * s1;
 }
-inline REAL window_hess(REAL x, REAL y, REAL z, REAL *g, REAL *H) {
-    REAL dax, ddax, day, dday, daz, ddaz;
-    REAL ax = window_axis(x, (REAL)BOX_LO_X, (REAL)BOX_HI_X, &dax, &ddax);
-    REAL ay = window_axis(y, (REAL)BOX_LO_Y, (REAL)BOX_HI_Y, &day, &dday);
-    REAL az = window_axis(z, (REAL)BOX_LO_Z, (REAL)BOX_HI_Z, &daz, &ddaz);
+/* Box window W with its gradient g and Hessian H (xx yy zz xy xz yz). */
+inline __attribute__((always_inline)) realv window_hess_v(realv x, realv y, realv z, realv *g,
+                                                          realv *H) {
+    realv dax, ddax, day, dday, daz, ddaz;
+    realv ax = window_axis_v(x, (REAL)BOX_LO_X, (REAL)BOX_HI_X, &dax, &ddax);
+    realv ay = window_axis_v(y, (REAL)BOX_LO_Y, (REAL)BOX_HI_Y, &day, &dday);
+    realv az = window_axis_v(z, (REAL)BOX_LO_Z, (REAL)BOX_HI_Z, &daz, &ddaz);
     g[0] = dax * ay * az; g[1] = ax * day * az; g[2] = ax * ay * daz;
     H[0] = ddax * ay * az; H[1] = ax * dday * az; H[2] = ax * ay * ddaz;
     H[3] = dax * day * az; H[4] = dax * ay * daz; H[5] = ax * day * daz;

@@ -53,17 +53,21 @@ typedef CAT(uint, LANES) hg_uintv;
 #endif
 
 /* One axis of one level for the LANES points: cell index in [0, n - 1] (as uint), weight s
- * of the high corner and ds/dx (`inside` is 0 where the coordinate was clamped). */
-HG_INLINE hg_uintv hg_axis(realv u, realv inside, REAL n, REAL scale, realv *s, realv *ds) {
+ * of the high corner, ds/dx and d2s/dx2 (`inside` is 0 where the coordinate was clamped;
+ * the forward pass drops the second derivative, the compiler removes it). */
+HG_INLINE hg_uintv hg_axis(realv u, realv inside, REAL n, REAL scale, realv *s, realv *ds,
+                           realv *dds) {
     realv p = u * n;
     intv c = clamp(TO_INTV(floor(p)), 0, (int)n - 1);
     realv t = p - TO_REALV(c);
 #if HG_SMOOTH
     *s = t * t * (RV(3) - RV(2) * t);
     *ds = inside * (scale * RV(6)) * t * (RV(1) - t);
+    *dds = inside * (scale * scale) * (RV(6) - RV(12) * t);
 #else
     *s = t;
     *ds = inside * scale;
+    *dds = RV(0);
 #endif
     return HG_AS_UINTV(c);
 }
@@ -113,26 +117,31 @@ HG_INLINE void hg_gather(__global const REAL *restrict fd, const int l, const ui
         }
 }
 
+/* Box coordinates of (x, y, z) in [0, 1] (cx cy cz), and 1 where they were not clamped
+ * (ix iy iz): the derivative of a clamped coordinate is 0. */
+#define HG_NORMALISE                                                                         \
+    const REAL sx_ = (REAL)BOX_HI_X - (REAL)BOX_LO_X, sy_ = (REAL)BOX_HI_Y - (REAL)BOX_LO_Y, \
+               sz_ = (REAL)BOX_HI_Z - (REAL)BOX_LO_Z;                                        \
+    realv ux = (x - RV(BOX_LO_X)) / sx_, uy = (y - RV(BOX_LO_Y)) / sy_,                      \
+          uz = (z - RV(BOX_LO_Z)) / sz_;                                                     \
+    realv cx = clamp(ux, RV(0), RV(1)), cy = clamp(uy, RV(0), RV(1)),                        \
+          cz = clamp(uz, RV(0), RV(1));                                                      \
+    realv ix = SEL(RV(0), RV(1), ux == cx), iy = SEL(RV(0), RV(1), uy == cy),                \
+          iz = SEL(RV(0), RV(1), uz == cz);
+
 /* The L*F features of the LANES points and their x, y, z derivatives. Index and weight
  * arithmetic runs on the vectors; the table gather is scalar, lane by lane (hg_gather). */
 HG_INLINE void hg_encode(FIELD_PARAMS, realv x, realv y, realv z, realv *feat, realv *fx,
                          realv *fy, realv *fz) {
-    const REAL sx_ = (REAL)BOX_HI_X - (REAL)BOX_LO_X, sy_ = (REAL)BOX_HI_Y - (REAL)BOX_LO_Y,
-               sz_ = (REAL)BOX_HI_Z - (REAL)BOX_LO_Z;
-    realv ux = (x - RV(BOX_LO_X)) / sx_, uy = (y - RV(BOX_LO_Y)) / sy_,
-          uz = (z - RV(BOX_LO_Z)) / sz_;
-    realv cx = clamp(ux, RV(0), RV(1)), cy = clamp(uy, RV(0), RV(1)),
-          cz = clamp(uz, RV(0), RV(1));
-    realv ix = SEL(RV(0), RV(1), ux == cx), iy = SEL(RV(0), RV(1), uy == cy),
-          iz = SEL(RV(0), RV(1), uz == cz);
+    HG_NORMALISE
     for (int l = 0; l < HG_LEVELS; ++l) {
         uint idx[8 * LANES];
         REAL vals[8 * HG_FEATURES * LANES];
         const REAL n = fp[1 + l];
-        realv sx, sy, sz, dsx, dsy, dsz;
-        hg_uintv i = hg_axis(cx, ix, n, n / sx_, &sx, &dsx);
-        hg_uintv j = hg_axis(cy, iy, n, n / sy_, &sy, &dsy);
-        hg_uintv k = hg_axis(cz, iz, n, n / sz_, &sz, &dsz);
+        realv sx, sy, sz, dsx, dsy, dsz, unused;
+        hg_uintv i = hg_axis(cx, ix, n, n / sx_, &sx, &dsx, &unused);
+        hg_uintv j = hg_axis(cy, iy, n, n / sy_, &sy, &dsy, &unused);
+        hg_uintv k = hg_axis(cz, iz, n, n / sz_, &sz, &dsz, &unused);
         hg_indices(fp, l, n, i, j, k, idx);
         hg_gather(fd, l, idx, vals);
         realv ax[2] = {RV(1) - sx, sx}, ay[2] = {RV(1) - sy, sy}, az[2] = {RV(1) - sz, sz};

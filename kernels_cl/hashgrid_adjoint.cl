@@ -56,23 +56,6 @@ HG_INLINE REAL hg_hsum4(CAT(REAL, 4) v) {
 HG_INLINE REAL hg_hsum8(CAT(REAL, 8) v) { return hg_hsum4(v.lo + v.hi); }
 #endif
 
-/* hg_axis (field_hashgrid.cl) with the second derivative of the high corner's weight. */
-HG_INLINE hg_uintv hg_axis2(realv u, realv inside, REAL n, REAL scale, realv *s, realv *ds,
-                            realv *dds) {
-    realv p = u * n;
-    intv c = clamp(TO_INTV(floor(p)), 0, (int)n - 1);
-    realv t = p - TO_REALV(c);
-#if HG_SMOOTH
-    *s = t * t * (RV(3) - RV(2) * t);
-    *ds = inside * (scale * RV(6)) * t * (RV(1) - t);
-    *dds = inside * (scale * scale) * (RV(6) - RV(12) * t);
-#else
-    *s = t;
-    *ds = inside * scale;
-    *dds = RV(0);
-#endif
-    return HG_AS_UINTV(c);
-}
 
 /* Corner weights of level l at the (clamped, normalised) points: table indices idx, weight
  * cw, its gradient (cgx cgy cgz) and Hess(weight) mu (chx chy chz), for the 8 corners. */
@@ -84,9 +67,9 @@ HG_INLINE void hg_corners2(FIELD_PARAMS, const int l, realv cx, realv cy, realv 
                sz_ = (REAL)BOX_HI_Z - (REAL)BOX_LO_Z;
     const REAL n = fp[1 + l];
     realv sx, sy, sz, dsx, dsy, dsz, ddx, ddy, ddz;
-    hg_uintv i = hg_axis2(cx, ix, n, n / sx_, &sx, &dsx, &ddx);
-    hg_uintv j = hg_axis2(cy, iy, n, n / sy_, &sy, &dsy, &ddy);
-    hg_uintv k = hg_axis2(cz, iz, n, n / sz_, &sz, &dsz, &ddz);
+    hg_uintv i = hg_axis(cx, ix, n, n / sx_, &sx, &dsx, &ddx);
+    hg_uintv j = hg_axis(cy, iy, n, n / sy_, &sy, &dsy, &ddy);
+    hg_uintv k = hg_axis(cz, iz, n, n / sz_, &sz, &dsz, &ddz);
     hg_indices(fp, l, n, i, j, k, idx);
     for (int c = 0; c < 8; ++c) {
         const REAL a = (c >> 2) ? 1 : -1, b = ((c >> 1) & 1) ? 1 : -1, d = (c & 1) ? 1 : -1;
@@ -107,17 +90,6 @@ HG_INLINE void hg_corners2(FIELD_PARAMS, const int l, realv cx, realv cy, realv 
         chz[c] = hxz * mx + hyz * my + hzz * mz;
     }
 }
-
-/* Normalised, clamped coordinates and the flags of the unclamped ones. */
-#define HG_NORMALISE                                                                         \
-    const REAL sx_ = (REAL)BOX_HI_X - (REAL)BOX_LO_X, sy_ = (REAL)BOX_HI_Y - (REAL)BOX_LO_Y, \
-               sz_ = (REAL)BOX_HI_Z - (REAL)BOX_LO_Z;                                        \
-    realv ux = (x - RV(BOX_LO_X)) / sx_, uy = (y - RV(BOX_LO_Y)) / sy_,                      \
-          uz = (z - RV(BOX_LO_Z)) / sz_;                                                     \
-    realv cx = clamp(ux, RV(0), RV(1)), cy = clamp(uy, RV(0), RV(1)),                        \
-          cz = clamp(uz, RV(0), RV(1));                                                      \
-    realv ix = SEL(RV(0), RV(1), ux == cx), iy = SEL(RV(0), RV(1), uy == cy),                \
-          iz = SEL(RV(0), RV(1), uz == cz);
 
 /* Features with their gradient (f*x f*y f*z) and Hess(feature) mu (h*x h*y h*z). */
 HG_INLINE void hg_encode2(FIELD_PARAMS, realv x, realv y, realv z, realv mx, realv my,
@@ -378,14 +350,10 @@ HG_ADJ_FN realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx,
     const REAL k = fp[0] - (REAL)1;
     realv so = hg_sigmoid(o);
     realv G = k * so, G1 = G * (RV(1) - so), G2 = G1 * (RV(1) - RV(2) * so);
-    realv Wx, Wy, Wz, Wxx, Wyy, Wzz;
-    realv wax = window_axis_v(x, (REAL)BOX_LO_X, (REAL)BOX_HI_X, &Wx, &Wxx);
-    realv way = window_axis_v(y, (REAL)BOX_LO_Y, (REAL)BOX_HI_Y, &Wy, &Wyy);
-    realv waz = window_axis_v(z, (REAL)BOX_LO_Z, (REAL)BOX_HI_Z, &Wz, &Wzz);
-    realv Wn = wax * way * waz;
-    realv gWx = Wx * way * waz, gWy = wax * Wy * waz, gWz = wax * way * Wz;
-    realv Hxx = Wxx * way * waz, Hyy = wax * Wyy * waz, Hzz = wax * way * Wzz;
-    realv Hxy = Wx * Wy * waz, Hxz = Wx * way * Wz, Hyz = wax * Wy * Wz;
+    realv gW[3], HW[6];
+    realv Wn = window_hess_v(x, y, z, gW, HW);
+    realv gWx = gW[0], gWy = gW[1], gWz = gW[2];
+    realv Hxx = HW[0], Hyy = HW[1], Hzz = HW[2], Hxy = HW[3], Hxz = HW[4], Hyz = HW[5];
     realv eta = RV(1) + Wn * G;
     realv Gx = G1 * ox, Gy = G1 * oy, Gz = G1 * oz; /* grad G */
     realv ex = G * gWx + Wn * Gx, ey = G * gWy + Wn * Gy, ez = G * gWz + Wn * Gz;

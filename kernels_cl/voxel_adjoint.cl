@@ -49,19 +49,6 @@ VOX_INLINE void voxel_flush_lane(__global REAL *grad, int cell, REAL (*acc)[LANE
     }
 }
 
-/* Box window W for all lanes with its gradient g and Hessian H (xx yy zz xy xz yz), as
- * common.h's window_hess. */
-VOX_INLINE realv vox_window_hess(realv x, realv y, realv z, realv *g, realv *H) {
-    realv dax, ddax, day, dday, daz, ddaz;
-    realv ax = window_axis_v(x, (REAL)BOX_LO_X, (REAL)BOX_HI_X, &dax, &ddax);
-    realv ay = window_axis_v(y, (REAL)BOX_LO_Y, (REAL)BOX_HI_Y, &day, &dday);
-    realv az = window_axis_v(z, (REAL)BOX_LO_Z, (REAL)BOX_HI_Z, &daz, &ddaz);
-    g[0] = dax * ay * az; g[1] = ax * day * az; g[2] = ax * ay * daz;
-    H[0] = ddax * ay * az; H[1] = ax * dday * az; H[2] = ax * ay * ddaz;
-    H[3] = dax * day * az; H[4] = dax * ay * daz; H[5] = ax * day * daz;
-    return ax * ay * az;
-}
-
 inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, realv my,
                            realv mz, realv w, realv *gx, realv *gy, realv *gz, realv *hx,
                            realv *hy, realv *hz, __global REAL *grad FIELD_ACC_PARAM) {
@@ -103,7 +90,7 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
         gh[5] += wx[a] * y4;
     }
     realv gw[3], hw[6];
-    realv W = vox_window_hess(x, y, z, gw, hw);
+    realv W = window_hess_v(x, y, z, gw, hw);
     realv g1 = g - RV(1);
     realv eta = RV(1) + W * g1;
     realv ge0 = gw[0] * g1 + W * gg[0], ge1 = gw[1] * g1 + W * gg[1];
@@ -200,9 +187,11 @@ VOX_INLINE void vox_axis(REAL t, REAL *w, REAL *d, REAL *s) {
     s[0] = -sst; s[1] = sst;
 }
 
+/* One lane; the box window W, its gradient gw and Hessian hw come from the lane vectors. */
 VOX_INLINE REAL voxel_adjoint1(__global const REAL *restrict fd, __global REAL *grad,
                                REAL x, REAL y, REAL z, REAL mx, REAL my, REAL mz, REAL w,
-                               REAL *ge, REAL *hm, int *cell, REAL *acc) {
+                               REAL W, const REAL *gw, const REAL *hw, REAL *ge, REAL *hm,
+                               int *cell, REAL *acc) {
     const REAL hx = ((REAL)BOX_HI_X - (REAL)BOX_LO_X) / (VOX_NX - 1);
     const REAL hy = ((REAL)BOX_HI_Y - (REAL)BOX_LO_Y) / (VOX_NY - 1);
     const REAL hz = ((REAL)BOX_HI_Z - (REAL)BOX_LO_Z) / (VOX_NZ - 1);
@@ -238,8 +227,6 @@ VOX_INLINE REAL voxel_adjoint1(__global const REAL *restrict fd, __global REAL *
                 gh[4] += dx[a] * wy[b] * dz[c] * t;
                 gh[5] += wx[a] * dy[b] * dz[c] * t;
             }
-    REAL gw[3], hw[6];
-    REAL W = window_hess(x, y, z, gw, hw);
     REAL g1 = g - 1;
     REAL eta = 1 + W * g1;
     for (int a = 0; a < 3; ++a)
@@ -282,14 +269,22 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
                            realv mz, realv w, realv *gx, realv *gy, realv *gz, realv *hx,
                            realv *hy, realv *hz, __global REAL *grad FIELD_ACC_PARAM) {
     REAL xs[LANES], ys[LANES], zs[LANES], ms[3][LANES], ws[LANES];
-    REAL eo[LANES], go[3][LANES], ho[3][LANES];
+    REAL eo[LANES], go[3][LANES], ho[3][LANES], Ws[LANES], gws[3][LANES], hws[6][LANES];
     VSTORE(x, 0, xs); VSTORE(y, 0, ys); VSTORE(z, 0, zs);
     VSTORE(mx, 0, ms[0]); VSTORE(my, 0, ms[1]); VSTORE(mz, 0, ms[2]);
     VSTORE(w, 0, ws);
+    realv gwv[3], hwv[6];
+    VSTORE(window_hess_v(x, y, z, gwv, hwv), 0, Ws);
+    for (int a = 0; a < 3; ++a)
+        VSTORE(gwv[a], 0, gws[a]);
+    for (int a = 0; a < 6; ++a)
+        VSTORE(hwv[a], 0, hws[a]);
     for (int l = 0; l < LANES; ++l) {
         REAL ge[3], hm[3];
+        REAL gw[3] = {gws[0][l], gws[1][l], gws[2][l]};
+        REAL hw[6] = {hws[0][l], hws[1][l], hws[2][l], hws[3][l], hws[4][l], hws[5][l]};
         eo[l] = voxel_adjoint1(fd, grad, xs[l], ys[l], zs[l], ms[0][l], ms[1][l], ms[2][l],
-                               ws[l], ge, hm, &vcell[l], vacc[l]);
+                               ws[l], Ws[l], gw, hw, ge, hm, &vcell[l], vacc[l]);
         for (int a = 0; a < 3; ++a) {
             go[a][l] = ge[a];
             ho[a][l] = hm[a];

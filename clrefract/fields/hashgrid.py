@@ -36,14 +36,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import ClrefractError
+from ..imageio import atomic_path
 from .base import Box, Field, box_window
 
 INTERPS = ("smoothstep", "trilinear")
@@ -649,22 +648,16 @@ class HashGridField(Field):
     def save(self, path) -> None:
         """Write an .npz (kind, config as JSON, box lo/hi/margin, params) atomically."""
         path = Path(path)
-        fd, tmp = tempfile.mkstemp(dir=path.parent or ".", prefix=path.name, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(
-                    f,
-                    kind="hashgrid",
-                    config=json.dumps(asdict(self.config)),
-                    lo=np.asarray(self.box.lo, np.float64),
-                    hi=np.asarray(self.box.hi, np.float64),
-                    margin=self.box.margin,
-                    params=self.params_vec,
-                )
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_path(path) as tmp, tmp.open("wb") as f:
+            np.savez_compressed(
+                f,
+                kind="hashgrid",
+                config=json.dumps(asdict(self.config)),
+                lo=np.asarray(self.box.lo, np.float64),
+                hi=np.asarray(self.box.hi, np.float64),
+                margin=self.box.margin,
+                params=self.params_vec,
+            )
 
     @classmethod
     def load(cls, path) -> HashGridField:

@@ -28,13 +28,12 @@ Layout, shared with kernels_cl/field_voxel.cl and kernels_cl/voxel_adjoint.cl:
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import ClrefractError
+from ..imageio import atomic_path
 from .base import Box, Field, box_window
 
 INTERPS = ("trilinear", "smoothstep", "bspline")
@@ -356,23 +355,17 @@ class VoxelGrid(Field):
             _check_at_least_one(self.values)
         except ClrefractError as exc:
             raise ClrefractError(f"{path}: cannot save: {exc}") from None
-        fd, tmp = tempfile.mkstemp(dir=path.parent or ".", prefix=path.name, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(
-                    f,
-                    kind="voxel",
-                    values=self.values,
-                    lo=np.asarray(self.box.lo),
-                    hi=np.asarray(self.box.hi),
-                    margin=self.box.margin,
-                    interp=self.interp,
-                    eta_bound=np.nan if self.eta_bound is None else self.eta_bound,
-                )
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_path(path) as tmp, tmp.open("wb") as f:
+            np.savez_compressed(
+                f,
+                kind="voxel",
+                values=self.values,
+                lo=np.asarray(self.box.lo),
+                hi=np.asarray(self.box.hi),
+                margin=self.box.margin,
+                interp=self.interp,
+                eta_bound=np.nan if self.eta_bound is None else self.eta_bound,
+            )
 
     @classmethod
     def load(cls, path) -> VoxelGrid:
