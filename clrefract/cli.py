@@ -74,6 +74,8 @@ def _cmd_render(args) -> int:
         dataset = Dataset(Path(args.dataset))
         box = dataset.box
     field = _field_for_render(args.field, box)
+    if field.uses_window():  # a learned field is 1 outside its own box: fly straight to it
+        box = field.box
     if args.cameras:
         cameras = load_transforms(Path(args.cameras))
     elif dataset is not None:
@@ -214,6 +216,8 @@ def _cmd_fit(args) -> int:
             "lr",
             "lr_table",
             "lr_mlp",
+            "lr_phi",
+            "width",
             "reg",
             "step",
             "queues",
@@ -297,8 +301,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="run folder")
     p.add_argument("--config", help="TOML file of fit settings (flags override it)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
-    p.add_argument("--field", choices=["voxel", "hashgrid"])
-    p.add_argument("--res", type=int, help="voxel grid resolution")
+    p.add_argument(
+        "--field",
+        choices=["levelset", "voxel", "hashgrid"],
+        help="voxel: eta on a grid (default; any medium); levelset: one index inside a sharp "
+        "surface (glass, water: the sharpest fits); hashgrid: hash grid + MLP",
+    )
+    p.add_argument("--res", type=int, help="grid resolution (voxel values or level set)")
     p.add_argument("--interp", choices=["bspline", "smoothstep", "trilinear"], help="voxel weights")
     p.add_argument(
         "--init", choices=["hull", "empty"], help="start from the visual hull or eta = 1"
@@ -308,11 +317,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hidden", type=int, help="MLP width")
     p.add_argument("--iterations", type=int)
     p.add_argument("--batch", type=int, help="rays per iteration")
-    p.add_argument("--lr", type=float, help="learning rate of voxel values")
+    p.add_argument("--width", type=float, help="level-set interface width, mm")
+    p.add_argument("--lr", type=float, help="learning rate of voxel values (level set: index)")
+    p.add_argument("--lr-phi", type=float, help="learning rate of the level set's distance, mm")
     p.add_argument("--lr-table", type=float, help="learning rate of hash tables")
     p.add_argument("--lr-mlp", type=float, help="learning rate of the MLP")
     p.add_argument("--reg", type=float, help="smoothness regulariser weight")
-    p.add_argument("--step", type=float, help="integrator step, mm")
+    p.add_argument(
+        "--step", type=float, help="integrator step, mm (default: width/4 for level sets, else 1)"
+    )
     p.add_argument("--queues", type=int, help="command queues the batch is split across")
     p.add_argument("--precision", choices=["float32", "float64"])
     p.add_argument("--device")

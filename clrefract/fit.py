@@ -35,13 +35,21 @@ except ImportError:  # Python 3.10
     import tomli as tomllib
 
 
+FIELDS = ("levelset", "voxel", "hashgrid")
+GRID_FIELDS = ("levelset", "voxel")  # fields on a node grid of `res` per axis
+
+
 @dataclass
 class FitConfig:
-    field: str = "voxel"  # "voxel" or "hashgrid"
-    # voxel grid: final resolution, and the coarse-to-fine resolutions before it
+    field: str = "voxel"  # "levelset", "voxel" or "hashgrid"
+    # voxel grid (level set: its grid of distances): final resolution, and the
+    # coarse-to-fine resolutions before it (voxel grids only)
     res: int = 64
     res_schedule: tuple = ()  # e.g. (16, 32); the hull start wants the final grid at once
     interp: str = "bspline"  # C2 tricubic B-spline; "smoothstep" (C1) or "trilinear"
+    # level set: one index inside a surface ramped across `width` mm
+    width: float = 1.0
+    lr_phi: float = 0.02  # mm per step, the distance values
     # hash grid
     levels: int = 8
     features: int = 2
@@ -54,7 +62,7 @@ class FitConfig:
     # optimisation
     iterations: int = 600
     batch: int = 8192
-    lr: float = 5e-3  # voxel values
+    lr: float = 5e-3  # voxel values; the index of a level set
     lr_table: float = 1e-2
     lr_mlp: float = 1e-3
     lr_final: float = 0.1  # learning rates decay exponentially to this fraction
@@ -68,7 +76,7 @@ class FitConfig:
     hull_tolerance: float = 0.2  # fraction of the views whose mask may have a hole
     env_blur: float = 0.0  # initial environment blur in pixels, sharpened to 0
     blur_until: float = 0.5  # fraction of the iterations over which the blur goes to 0
-    step: float = 1.0
+    step: float = 0.0  # mm; 0: width/4 for a level set, 1 for the others
     # forward states kept every this many steps for the backward pass (0: constant memory);
     # they stop the re-integrated ray drifting away through sharp interfaces
     backward_checkpoints: int = 8
@@ -84,14 +92,24 @@ class FitConfig:
     validate_every: int = 25
     test_views: int = -1  # test views rendered at the end (-1: all)
 
+    @property
+    def step_mm(self) -> float:
+        if self.step > 0:
+            return self.step
+        return self.width / 4 if self.field == "levelset" else 1.0
+
     def validate(self) -> None:
-        if self.field not in ("voxel", "hashgrid"):
-            raise ClrefractError(f"field must be 'voxel' or 'hashgrid', got {self.field!r}")
+        if self.field not in FIELDS:
+            raise ClrefractError(f"field must be one of {', '.join(FIELDS)}, got {self.field!r}")
         for name in ("iterations", "batch", "res", "queues"):
             if getattr(self, name) < 1:
                 raise ClrefractError(f"{name} must be at least 1, got {getattr(self, name)}")
-        if not (self.step > 0 and math.isfinite(self.step)):
-            raise ClrefractError(f"step must be positive, got {self.step}")
+        if not (self.step >= 0 and math.isfinite(self.step)):
+            raise ClrefractError(f"step must be positive (or 0: automatic), got {self.step}")
+        if not (self.width > 0 and math.isfinite(self.width)):
+            raise ClrefractError(f"width must be positive, got {self.width}")
+        if self.field == "levelset" and self.init != "hull":
+            raise ClrefractError("a level-set fit starts from the visual hull (init = 'hull')")
         if self.init not in ("hull", "empty"):
             raise ClrefractError(f"init must be 'hull' or 'empty', got {self.init!r}")
         if self.interp not in ("smoothstep", "trilinear", "bspline"):
@@ -161,7 +179,12 @@ def batch_indices(cfg: FitConfig, it: int, n: int) -> np.ndarray:
 
 
 def make_field(cfg: FitConfig, box, eta_max: float, res: int):
-    """A fresh field of the configured kind (all ones: eta = 1 everywhere)."""
+    """A fresh field of the configured kind (eta = 1 everywhere)."""
+    if cfg.field == "levelset":
+        from .fields.levelset import LevelSetField
+
+        far = np.full((res, res, res), 4.0 * cfg.width)  # no surface: air everywhere
+        return LevelSetField(far, box, eta=1.0, width=cfg.width, eta_max=eta_max)
     if cfg.field == "voxel":
         from .fields.voxel import VoxelGrid
 
@@ -219,7 +242,7 @@ class Fit:
         self.engine = GradientEngine(
             field,
             self.box,
-            step=self.cfg.step,
+            step=self.cfg.step_mm,
             precision=self.cfg.precision,
             lanes=self.cfg.lanes or None,
             runtime=self.runtime,
@@ -231,11 +254,16 @@ class Fit:
 
     def _groups(self):
         return self.field.param_groups(
-            lr=self.cfg.lr, lr_table=self.cfg.lr_table, lr_mlp=self.cfg.lr_mlp
+            lr=self.cfg.lr,
+            lr_table=self.cfg.lr_table,
+            lr_mlp=self.cfg.lr_mlp,
+            lr_phi=self.cfg.lr_phi,
         )
 
     def start(self) -> None:
         res = resolution_at(self.cfg, 0)
+        if self.cfg.field == "levelset":
+            self.box = self._object_box()
         self._bind(self._make_field(res))
         self.adam = Adam(len(self.params), self._groups())
         if self._hull_fit():
@@ -243,10 +271,10 @@ class Fit:
 
     # --- the visual hull: where the object can be -------------------------------------------
     def _hull_fit(self) -> bool:
-        return self.cfg.init == "hull" and self.cfg.field == "voxel"
+        return self.cfg.init == "hull" and self.cfg.field in GRID_FIELDS
 
-    def _hull(self, res: int):
-        from .hull import refraction_mask, visual_hull
+    def _refraction_masks(self) -> list:
+        from .hull import refraction_mask
 
         if self._masks is None:
             env = self._env_full
@@ -254,6 +282,37 @@ class Fit:
                 refraction_mask(cam, self.ds.image(cam), env, self.cfg.mask_threshold)
                 for cam in self.ds.train
             ]
+        return self._masks
+
+    def _object_box(self):
+        """The box around the visual hull that a level set needs: its margin (where the
+        window brings eta to 1) and a band of the interface width beyond the hull. Rays fly
+        straight to it, and its grid spends every node near the object."""
+        from .fields.base import Box
+        from .hull import visual_hull
+
+        box = self.ds.box
+        hull = visual_hull(
+            box, self.ds.train, self._refraction_masks(), 48, tolerance=self.cfg.hull_tolerance
+        )
+        if not hull.found:
+            raise ClrefractError(
+                f"{self.ds.root}: the refraction masks do not agree on an object (a faint "
+                "medium such as gas?); a level set needs a surface: use --field voxel"
+            )
+        inside = np.argwhere(hull.distance > -hull.width)
+        ax = [np.linspace(box.lo[a], box.hi[a], 48) for a in range(3)]
+        lo = np.array([ax[a][inside[:, a].min()] for a in range(3)])
+        hi = np.array([ax[a][inside[:, a].max()] for a in range(3)])
+        pad = 2 * box.margin + 2 * self.cfg.width + hull.width
+        lo = np.maximum(lo - pad, box.lo)
+        hi = np.minimum(hi + pad, box.hi)
+        return Box(tuple(lo.tolist()), tuple(hi.tolist()), box.margin)
+
+    def _hull(self, res: int):
+        from .hull import visual_hull
+
+        self._refraction_masks()
         if res not in self._hulls:
             hull = visual_hull(
                 self.box, self.ds.train, self._masks, res, tolerance=self.cfg.hull_tolerance
@@ -264,58 +323,110 @@ class Fit:
     def _update_free(self) -> None:
         """Nodes whose eta may change: near the hull (everywhere without one)."""
         self._free = None
-        if self._hull_fit() and self.cfg.free_cells >= 0:
+        if self._hull_fit() and self.cfg.field == "voxel" and self.cfg.free_cells >= 0:
             hull = self._hull(self.field.values.shape[0])
             if hull.found:
                 self._free = hull.dilated(self.cfg.free_cells).ravel()
 
     def _fill_hull(self) -> None:
         """Fill the hull with the index, and grow or shrink it by the offset, that give the
-        lowest loss on a fixed batch (line searches: index, offset, index again)."""
+        lowest loss on a fixed batch of rays through the masks (line searches). A level set
+        also picks how much to smooth the hull: a visual hull from finitely many views is
+        faceted (flat between the view cones), and a sharp surface shows every facet."""
         hull = self._hull(self.field.values.shape[0])
         if not hull.found:
             self.stream.write("start: no refraction mask agrees across views; eta = 1\n")
             return
-        idx = self._fixed_batch(7)
-
-        def loss_of(eta: float, offset: float) -> float:
-            self.params[:] = 1.0 + (eta - 1.0) * hull.shell(offset).ravel()
-            self.field.set_data(self.params)
-            self.engine.tracer.upload_field()
-            return self._forward_loss(idx)
-
+        idx = self._mask_batch(7)
         etas = np.linspace(1.0, self.ds.scene.eta_range[1], 9)
-        empty = loss_of(1.0, 0.0)
-        loss, eta = min((loss_of(e, 0.0), float(e)) for e in etas[1:])
-        # a visual hull is too big where the views cannot see in (concavities, or a prism's
-        # rays through parallel faces), so shrunk hulls get a full index search too
-        offset = 0.0
-        for o in hull.width / 2 * np.array([-3.0, -2.0, -1.0, 1.0]):
-            trial = min((loss_of(e, o), float(e)) for e in etas[1:])
-            if trial[0] < loss:
-                (loss, eta), offset = trial, float(o)
-        fine = eta + (etas[1] - etas[0]) * np.linspace(-0.75, 0.75, 7)
-        loss, eta = min([(loss, eta)] + [(loss_of(e, offset), float(e)) for e in fine if e > 1])
+        self._set_start(hull, 1.0, 0.0)
+        empty = self._forward_loss(idx)
+        if self.cfg.field == "levelset":
+            best = (np.inf, 1.0, 0.0, 0.0)
+            for sigma in hull.width * np.array([0.0, 1.0, 2.0, 3.0, 4.0, 6.0]):
+                h = hull.smoothed(sigma)
+                start = None if best[1] == 1.0 else best[1]
+                trial = self._search_levelset(h, idx, etas, start)
+                if trial[0] < best[0]:
+                    best = (*trial, float(sigma))
+            loss, eta, offset, sigma = best
+        else:
+            loss, eta, offset = self._search_voxel(hull, idx, etas)
+            sigma = 0.0
         if not loss < empty:
-            loss, eta, offset = empty, 1.0, 0.0
+            loss, eta, offset, sigma = empty, 1.0, 0.0, 0.0
+        hull = hull.smoothed(sigma)
         occ = hull.shell(offset).ravel()
-        self.params[:] = 1.0 + (eta - 1.0) * occ
-        self.field.set_data(self.params)
-        self.engine.tracer.upload_field()
+        self._set_start(hull, eta, offset)
         self.init_info = {
             "hull_fraction": float((occ > 0.5).mean()),
             "mask_fraction": hull.mask_fraction,
             "eta": eta,
             "offset_mm": float(offset),
+            "smoothing_mm": float(sigma),
             "loss": float(loss),
             "loss_empty": float(empty),
         }
         self.stream.write(
             f"start: visual hull {100 * self.init_info['hull_fraction']:.2f}% of the box, "
-            f"offset {offset:+.2f} mm, filled with eta {eta:.3f} (loss {loss:.4g}; empty "
-            f"{empty:.4g})\n"
+            f"offset {offset:+.2f} mm, smoothed {sigma:.1f} mm, filled with eta {eta:.3f} "
+            f"(loss {loss:.4g}; empty {empty:.4g})\n"
         )
         (self.out / "init.json").write_text(json.dumps(self.init_info, indent=2))
+
+    def _loss_of(self, hull, idx, eta: float, offset: float) -> float:
+        self._set_start(hull, eta, offset)
+        return self._forward_loss(idx)
+
+    def _search_voxel(self, hull, idx, etas):
+        """Index, then offset with a full index search each (a visual hull is too big where
+        the views cannot see in: concavities, or a prism's rays through parallel faces),
+        then a finer index."""
+        loss, eta = min((self._loss_of(hull, idx, e, 0.0), float(e)) for e in etas[1:])
+        offset = 0.0
+        for o in hull.width / 2 * np.array([-3.0, -2.0, -1.0, 1.0]):
+            trial = min((self._loss_of(hull, idx, e, o), float(e)) for e in etas[1:])
+            if trial[0] < loss:
+                (loss, eta), offset = trial, float(o)
+        fine = eta + (etas[1] - etas[0]) * np.linspace(-0.75, 0.75, 7)
+        cands = [(loss, eta)] + [(self._loss_of(hull, idx, e, offset), float(e)) for e in fine]
+        loss, eta = min(c for c in cands if c[1] > 1)
+        return loss, eta, offset
+
+    def _search_levelset(self, hull, idx, etas, eta=None):
+        """Alternating line searches, coarse to fine: index, offset, index, offset, index.
+        A sharp surface is worth placing to a fraction of a cell."""
+        step = etas[1] - etas[0]
+        offset = 0.0
+        if eta is None:
+            loss, eta = min((self._loss_of(hull, idx, e, 0.0), float(e)) for e in etas[1:])
+        else:
+            loss = self._loss_of(hull, idx, eta, 0.0)
+        for de, do in [(0, 0.5), (0.25, 0), (0, 0.125), (0.08, 0)]:
+            if do:
+                cands = offset + hull.width * do * np.array([-3.0, -2.0, -1.0, 1.0, 2.0, 3.0])
+                for o in cands:
+                    trial = self._loss_of(hull, idx, eta, float(o))
+                    if trial < loss:
+                        loss, offset = trial, float(o)
+            else:
+                for e in eta + step * de * np.array([-3.0, -2.0, -1.0, 1.0, 2.0, 3.0]):
+                    if e > 1:
+                        trial = self._loss_of(hull, idx, float(e), offset)
+                        if trial < loss:
+                            loss, eta = trial, float(e)
+        return loss, eta, offset
+
+    def _set_start(self, hull, eta: float, offset: float) -> None:
+        """The field as the hull grown by offset mm and filled with index eta."""
+        if self.cfg.field == "levelset":
+            phi = -np.clip(hull.distance + offset, -8 * hull.width, 8 * hull.width)
+            self.params[:-1] = phi.ravel()
+            self.params[-1] = eta
+        else:
+            self.params[:] = 1.0 + (eta - 1.0) * hull.shell(offset).ravel()
+        self.field.set_data(self.params)
+        self.engine.tracer.upload_field()
 
     def _maybe_regrid(self) -> None:
         if self.cfg.field != "voxel":
@@ -375,7 +486,7 @@ class Fit:
         return self.out / "checkpoint.npz"
 
     def save_checkpoint(self) -> None:
-        shape = np.array(self.field.values.shape if self.cfg.field == "voxel" else [0])
+        shape = np.array(self.field.values.shape if self.cfg.field in GRID_FIELDS else [0])
         with atomic_path(self.checkpoint_path, suffix=".npz") as tmp:
             best_loss, best_it, best_params = self.best
             np.savez(
@@ -400,7 +511,8 @@ class Fit:
             raise ClrefractError(f"{path}: no checkpoint to resume from") from None
         except Exception as exc:  # noqa: BLE001 - any damage is the user's to know about
             raise ClrefractError(f"{path}: cannot read checkpoint ({exc})") from None
-        res = int(shape[0]) if self.cfg.field == "voxel" else 0
+        res = int(shape[0]) if self.cfg.field in GRID_FIELDS else 0
+        self.box = _run_box(self.out)
         self._bind(self._make_field(res) if res else self._make_field(0))
         if len(params) != len(self.params):
             raise ClrefractError(
@@ -416,6 +528,19 @@ class Fit:
         self.best = best if np.isfinite(best[0]) else (np.inf, 0, None)
 
     # --- the loop ----------------------------------------------------------------------------
+    def _mask_batch(self, tag: int) -> np.ndarray:
+        """A fixed batch of the training rays that the masks (grown by 2 pixels) mark: only
+        they can see the object, so they carry the whole signal of a start search."""
+        from scipy.ndimage import binary_dilation
+
+        marked = np.flatnonzero(
+            np.concatenate([binary_dilation(m, iterations=2).ravel() for m in self._masks])
+        )
+        if len(marked) < 16:
+            return self._fixed_batch(tag)
+        rng = np.random.default_rng([self.cfg.seed, tag])
+        return rng.choice(marked, size=min(self.cfg.batch, len(marked)), replace=False)
+
     def _fixed_batch(self, tag: int) -> np.ndarray:
         """A batch of training rays that depends only on (seed, tag)."""
         rng = np.random.default_rng([self.cfg.seed, tag])
@@ -437,7 +562,7 @@ class Fit:
         every = self.cfg.validate_every
         if every <= 0 or (self.it % every and self.it != self.cfg.iterations):
             return None
-        if self.cfg.field == "voxel" and self.field.values.shape[0] != self.cfg.res:
+        if self.cfg.field in GRID_FIELDS and self.field.values.shape[0] != self.cfg.res:
             return None  # earlier grids are not candidates
         loss = self.validation_loss()
         if loss < self.best[0]:
@@ -488,7 +613,7 @@ class Fit:
             "seconds": dt,
             "drift_mm": float(r.drift.max()),
             "blur": blur_at(self.cfg, self.it - 1),
-            "res": int(self.field.values.shape[0]) if self.cfg.field == "voxel" else 0,
+            "res": int(self.field.values.shape[0]) if self.cfg.field in GRID_FIELDS else 0,
         }
 
     def run(self) -> dict:
@@ -603,7 +728,9 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
         _truncate_metrics(out / "metrics.jsonl", fit.it)
     else:
         (out / "config.toml").write_text(_toml(cfg))
-        (out / "run.json").write_text(
+        (out / "metrics.jsonl").write_text("")
+        fit.start()
+        (out / "run.json").write_text(  # the field's box: a level set's is the object's
             json.dumps(
                 {
                     "dataset": str(Path(dataset).resolve()),
@@ -613,9 +740,16 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
                 indent=2,
             )
         )
-        (out / "metrics.jsonl").write_text("")
-        fit.start()
     return fit
+
+
+def _run_box(run: Path):
+    from .fields.base import Box
+
+    try:
+        return Box.from_dict(json.loads((Path(run) / "run.json").read_text())["box"])
+    except Exception as exc:  # noqa: BLE001 - any damage is the user's to know about
+        raise ClrefractError(f"{run}: cannot read the run's box from run.json ({exc})") from None
 
 
 def run_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stream=None) -> dict:
@@ -639,7 +773,7 @@ def field_from_run(run: Path):
         cfg,
         Box.from_dict(meta["box"]),
         meta["eta_max"],
-        int(shape[0]) if cfg.field == "voxel" else 0,
+        int(shape[0]) if cfg.field in GRID_FIELDS else 0,
     )
     field.set_data(params)
     return field

@@ -41,6 +41,19 @@ def box_entry(box: Box, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     return origins + np.maximum(tmin, 0)[:, None] * d
 
 
+def _adjoint_group(items: int, lanes: int) -> int | None:
+    """Work-group size of the backward pass. On CPUs (lanes > 1) PoCL runs a work-group as
+    a loop over its work-items, each with its own copy of the private accumulators (4 KB for
+    a B-spline's 64 taps) on one thread's stack: the driver's choice of hundreds of
+    work-items overflows it (a crash, seen at 2500 work-items in float64). At most 32."""
+    if lanes == 1:
+        return None
+    g = 32
+    while items % g:
+        g //= 2
+    return g
+
+
 class GradientEngine:
     """Photometric loss and its gradient for `field` (its data() are the parameters)."""
 
@@ -166,7 +179,7 @@ class GradientEngine:
                 ckpt,
                 Out(back[3]),
             ]
-            tr._enqueue(self._k_adjoint, items, args, q)
+            tr._enqueue(self._k_adjoint, items, args, q, local=_adjoint_group(items, tr.lanes))
             jobs.append((idx, grad, partial, back, items))
         total = np.zeros(n_par)
         back_pos = np.empty((n, 3))

@@ -78,8 +78,8 @@ def _tracer(fit, field):
 
     return Tracer(
         field,
-        fit.box,
-        step=fit.cfg.step,
+        field.box if field.uses_window() else fit.box,
+        step=fit.cfg.step_mm,
         precision=fit.cfg.precision,
         lanes=fit.cfg.lanes or None,
         runtime=fit.runtime,
@@ -141,7 +141,7 @@ def score_field(fit, field=None, out_dir: Path | None = None) -> dict:
     }
     truth = scene_truth(fit.ds)
     if truth is not None:
-        result["eta_rmse"] = eta_rmse(field, truth, fit.box, eval_fn=tracer.eval_field)
+        result["eta_rmse"] = eta_rmse(field, truth, fit.ds.box, eval_fn=tracer.eval_field)
     chamfer = surface_chamfer(field, fit.ds, eval_fn=tracer.eval_field)
     if chamfer is not None:  # inf: eta never reaches the level, there is no surface
         result["chamfer_mm"] = chamfer if np.isfinite(chamfer) else None
@@ -168,7 +168,7 @@ def surface_chamfer(field, ds, eval_fn=None) -> float | None:
 def write_fit_report(fit) -> dict:
     out = fit.out
     plot_metrics(out / "metrics.jsonl", out / "loss.png")
-    plot_slices(fit.field, fit.box, out / "slices.png", truth=scene_truth(fit.ds))
+    plot_slices(fit.field, fit.ds.box, out / "slices.png", truth=scene_truth(fit.ds))
     rows = [json.loads(ln) for ln in (out / "metrics.jsonl").read_text().splitlines() if ln]
     result = {
         "iterations": fit.it,

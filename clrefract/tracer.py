@@ -143,9 +143,10 @@ class Tracer:
             a = np.concatenate([a, np.repeat(a[-1:], pad, axis=0)])
         return [self._real(a[:, k]) for k in range(3)], n
 
-    def _enqueue(self, kernel, n_items: int, args, queue=None):
+    def _enqueue(self, kernel, n_items: int, args, queue=None, local: int | None = None):
         """Launch with numpy inputs copied in, Out/InOut arrays copied back (non-blocking);
-        returns the queue, to be finished by the caller."""
+        returns the queue, to be finished by the caller. local: work-group size (it must
+        divide n_items), else the driver's choice."""
         cl = self.runtime.cl
         q = queue or self.runtime.queue
         mf, ctx = cl.mem_flags, self.runtime.context
@@ -162,7 +163,7 @@ class Tracer:
             else:
                 b = a
             bufs.append(b)
-        kernel(q, (n_items,), None, self._fp, self._fd, *bufs)
+        kernel(q, (n_items,), None if local is None else (local,), self._fp, self._fd, *bufs)
         for a, b in back:
             cl.enqueue_copy(q, a, b, is_blocking=False)
         return q

@@ -72,6 +72,10 @@ inline realv smoother_d(realv t) {
     realv in = SEL(RV(0), RV(1), t > RV(0) && t < RV(1));
     return in * RV(30) * t * t * (t * (t - RV(2)) + RV(1));
 }
+inline realv smoother_dd(realv t) {
+    realv in = SEL(RV(0), RV(1), t > RV(0) && t < RV(1));
+    return in * RV(60) * t * (RV(1) - t) * (RV(1) - RV(2) * t);
+}
 
 /* Box window: 0 within MARGIN of a wall, 1 beyond 2 MARGIN; learned fields are 1 + W (g - 1)
  * so that rays leave the box in straight lines. Returns W and its gradient. */

@@ -15,6 +15,11 @@
  * eta = 1 + W (g - 1), W the box window, so rays leave the box in straight lines; the gradient
  * is the exact derivative of that expression.
  *
+ * VOX_LEVELSET (with VOX_BSPLINE): the spline g is a signed distance phi (mm, negative
+ * inside) and fd[VOX_NODES] the index n inside; g - 1 becomes F(phi) = (n - 1) S(1/2 -
+ * phi / LS_WIDTH), S the C2 quintic smoothstep: a surface as sharp as LS_WIDTH whatever the
+ * grid spacing, the shape of the analytic solids (fields/levelset.py).
+ *
  * Trilinear and smoothstep gather scalar: field_eval spills its LANES points to private
  * arrays, interpolates each with voxel_interp1 and loads the results back; with LANES == 1 it
  * is plain scalar code. The B-spline's arithmetic (64 taps) is done on the lane vectors and
@@ -26,6 +31,22 @@
 #endif
 #ifndef VOX_BSPLINE
 #define VOX_BSPLINE 0
+#endif
+#ifndef VOX_LEVELSET
+#define VOX_LEVELSET 0
+#endif
+#define VOX_NODES (VOX_NX * VOX_NY * VOX_NZ)
+
+#if VOX_LEVELSET
+/* F(phi) = (n - 1) S(1/2 - phi / w), with S, dS/dphi and d2F/dphi2. */
+inline realv levelset_map(realv phi, REAL n, realv *S, realv *dS, realv *F2) {
+    const REAL w = (REAL)LS_WIDTH;
+    realv s = RV(0.5) - phi / RV(w);
+    *S = smoother(s);
+    *dS = -smoother_d(s) / RV(w);
+    *F2 = RV((n - (REAL)1) / (w * w)) * smoother_dd(s);
+    return RV(n - (REAL)1) * *S;
+}
 #endif
 
 /* PoCL may crash on helpers that take private arrays by pointer unless they are inlined */
@@ -192,7 +213,16 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
         dgy += wx[a] * y1;
         dgz += wx[a] * y2;
     }
+#if VOX_LEVELSET
+    const REAL n = fd[VOX_NODES];
+    realv S, dS, F2;
+    realv g1 = levelset_map(g, n, &S, &dS, &F2), f1 = RV(n - (REAL)1) * dS;
+    dgx *= f1;
+    dgy *= f1;
+    dgz *= f1;
+#else
     realv g1 = g - RV(1);
+#endif
     realv vx, vy, vz;
     realv w = box_window(x, y, z, &vx, &vy, &vz);
     *gx = vx * g1 + w * dgx;

@@ -11,7 +11,18 @@
  * and adds them to the global gradient when it moves to another cell or at the end. The key
  * is the cell (i * VOX_NY + j) * VOX_NZ + k; the taps are its 4 x 4 x 4 nodes as the gather
  * reads them (x, y clamped; z folded from kb, see vox_axis4zv). */
+#if VOX_LEVELSET
+/* the index n is shared by every ray: summed per work-item in its slot of `partial` */
+#define LS_ACC_DECL __global REAL *ls_acc = partial + get_global_id(0);
+#define FIELD_ACC_PARAM , int *vcell, REAL(*vacc)[LANES], __global REAL *ls_acc
+#define FIELD_ACC_ARG , vcell, vacc, ls_acc
+#else
+#define LS_ACC_DECL
+#define FIELD_ACC_PARAM , int *vcell, REAL(*vacc)[LANES]
+#define FIELD_ACC_ARG , vcell, vacc
+#endif
 #define FIELD_ACC_DECL                                                                       \
+    LS_ACC_DECL                                                                              \
     int vcell[LANES];                                                                        \
     REAL vacc[64][LANES];                                                                    \
     for (int l_ = 0; l_ < LANES; ++l_) {                                                     \
@@ -19,8 +30,6 @@
         for (int c_ = 0; c_ < 64; ++c_)                                                      \
             vacc[c_][l_] = 0;                                                                \
     }
-#define FIELD_ACC_PARAM , int *vcell, REAL(*vacc)[LANES]
-#define FIELD_ACC_ARG , vcell, vacc
 #define FIELD_ACC_FLUSH(grad, partial, gid)                                                  \
     for (int l_ = 0; l_ < LANES; ++l_)                                                       \
         voxel_flush_lane(grad, vcell[l_], vacc, l_)
@@ -89,9 +98,27 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
         gh[4] += dx[a] * y3;
         gh[5] += wx[a] * y4;
     }
+#if VOX_LEVELSET
+    /* g is phi: g - 1 becomes F(phi), grad F = F' grad phi, Hess F = F'' grad phi grad
+     * phi^T + F' Hess phi */
+    const REAL n = fd[VOX_NODES];
+    realv S, dS, f2;
+    realv g1 = levelset_map(g, n, &S, &dS, &f2), f1 = RV(n - (REAL)1) * dS;
+    realv pg[3] = {gg[0], gg[1], gg[2]};
+    gh[0] = f2 * pg[0] * pg[0] + f1 * gh[0];
+    gh[1] = f2 * pg[1] * pg[1] + f1 * gh[1];
+    gh[2] = f2 * pg[2] * pg[2] + f1 * gh[2];
+    gh[3] = f2 * pg[0] * pg[1] + f1 * gh[3];
+    gh[4] = f2 * pg[0] * pg[2] + f1 * gh[4];
+    gh[5] = f2 * pg[1] * pg[2] + f1 * gh[5];
+    for (int a = 0; a < 3; ++a)
+        gg[a] *= f1;
+#endif
     realv gw[3], hw[6];
     realv W = window_hess_v(x, y, z, gw, hw);
+#if !VOX_LEVELSET
     realv g1 = g - RV(1);
+#endif
     realv eta = RV(1) + W * g1;
     realv ge0 = gw[0] * g1 + W * gg[0], ge1 = gw[1] * g1 + W * gg[1];
     realv ge2 = gw[2] * g1 + W * gg[2];
@@ -109,8 +136,27 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
     *hy = H[3] * mx + H[1] * my + H[5] * mz;
     *hz = H[4] * mx + H[5] * my + H[2] * mz;
     maskv act = w != RV(0) && W != RV(0);
+#if VOX_LEVELSET
+    /* only the interface band depends on the parameters */
+    act = act && dS != RV(0);
     if (!ANY(act))
         return eta;
+    {
+        /* d eta / dn = W S, d grad eta / dn = gW S + W dS grad phi */
+        realv mp = mx * pg[0] + my * pg[1] + mz * pg[2];
+        realv dn = w * ((mx * ge0 + my * ge1 + mz * ge2) * W * S +
+                        eta * (S * (mx * gw[0] + my * gw[1] + mz * gw[2]) + W * dS * mp));
+        REAL dns[LANES];
+        VSTORE(SEL(RV(0), dn, act), 0, dns);
+        REAL sum = 0;
+        for (int l = 0; l < LANES; ++l)
+            sum += dns[l];
+        *ls_acc += sum;
+    }
+#else
+    if (!ANY(act))
+        return eta;
+#endif
     /* a lane that splats into another cell than its accumulator's flushes it first */
     REAL acts[LANES];
     int keys[LANES];
@@ -127,6 +173,11 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
     realv A = w * ((mx * ge0 + my * ge1 + mz * ge2) * W +
                    eta * (mx * gw[0] + my * gw[1] + mz * gw[2]));
     realv B = w * eta * W;
+#if VOX_LEVELSET
+    /* d g1 / d theta = F' c, d grad g1 / d theta = F'' c grad phi + F' grad c */
+    A = f1 * A + w * eta * W * f2 * (mx * pg[0] + my * pg[1] + mz * pg[2]);
+    B = f1 * B;
+#endif
     A = SEL(RV(0), A, act);
     B = SEL(RV(0), B, act);
     realv bz[4];

@@ -6,10 +6,11 @@ measured with the same renderer and metrics:
 - start: the fit's starting point (the visual hull filled by line search, no gradient step),
   scored from the run itself before its first step;
 - fit: after the iterations, with the run's whole wall time (start included);
-- ceiling: the ground truth sampled on the same voxel grid (the best this grid can do).
+- ceiling: the ground truth on the same grid (the best this grid can do): its eta sampled at
+  the nodes of a voxel grid, or its signed distance at the nodes of a level set.
 
-    python tools/bench_reconstruction.py [--scenes sphere,prism,drop] [--res 128]
-        [--grid 64] [--iterations 300] [--json bench_results/reconstruction.json]
+    python tools/bench_reconstruction.py [--field levelset|voxel] [--scenes sphere,prism,drop]
+        [--res 128] [--grid 64] [--iterations 100] [--json bench_results/reconstruction.json]
 """
 
 from __future__ import annotations
@@ -43,6 +44,8 @@ def bench_scene(scene: str, args) -> dict:
     cfg = load_config(
         Path(args.config) if args.config else None,
         dict(
+            field=args.field,
+            width=args.width,
             res=args.grid,
             res_schedule=(),
             iterations=args.iterations,
@@ -51,7 +54,7 @@ def bench_scene(scene: str, args) -> dict:
             lr=args.lr,
         ),
     )
-    row: dict = {"scene": scene, "res": args.res, "grid": args.grid}
+    row: dict = {"scene": scene, "field": args.field, "res": args.res, "grid": args.grid}
     run = Path(args.runs) / scene
     shutil.rmtree(run, ignore_errors=True)
     t0 = time.perf_counter()
@@ -59,9 +62,16 @@ def bench_scene(scene: str, args) -> dict:
     row["start"] = {"seconds": time.perf_counter() - t0, **score_field(fit)}
     row["empty"] = score_field(fit, VoxelGrid(np.ones((8, 8, 8)), fit.box))
     truth = scene_truth(fit.ds)
-    ceiling = VoxelGrid.from_field(
-        truth, fit.box, args.grid, interp=cfg.interp, eta_max=fit.eta_max
-    )
+    if cfg.field == "levelset":
+        from clrefract.fields.levelset import LevelSetField
+
+        ceiling = LevelSetField.from_sdf(
+            lambda p: truth.sdf(p)[0], fit.box, args.grid, truth.eta, cfg.width
+        )
+    else:
+        ceiling = VoxelGrid.from_field(
+            truth, fit.box, args.grid, interp=cfg.interp, eta_max=fit.eta_max
+        )
     row["ceiling"] = score_field(fit, ceiling)
     t0 = time.perf_counter()
     res = fit.run()
@@ -73,11 +83,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="sphere,prism,drop")
     ap.add_argument("--res", type=int, default=128, help="image size of the views")
-    ap.add_argument("--grid", type=int, default=64, help="voxel grid resolution")
-    ap.add_argument("--iterations", type=int, default=300)
+    ap.add_argument("--grid", type=int, default=64, help="grid resolution (voxel or level set)")
+    ap.add_argument("--field", default="levelset", choices=["levelset", "voxel"])
+    ap.add_argument("--width", type=float, default=1.0, help="level-set interface width, mm")
+    ap.add_argument("--iterations", type=int, default=100)
     ap.add_argument("--batch", type=int, default=8192)
-    ap.add_argument("--step", type=float, default=1.0)
-    ap.add_argument("--lr", type=float, default=2e-3)
+    ap.add_argument("--step", type=float, default=0.0, help="mm; 0: the fit's default")
+    ap.add_argument("--lr", type=float, default=None, help="default: the fit's")
     ap.add_argument("--config", default="", help="a fit TOML applied under the flags above")
     ap.add_argument("--data", default="bench_results/data")
     ap.add_argument("--runs", default="bench_results/runs")

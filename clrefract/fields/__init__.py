@@ -59,6 +59,10 @@ def load_field_file(path: Path, box: Box | None = None) -> Field:
                 kind = str(z["kind"]) if "kind" in z else "voxel"
         except Exception as exc:  # noqa: BLE001 - any unreadable file is the user's to fix
             raise ClrefractError(f"{path}: cannot read field file ({exc})") from None
+        if kind == "levelset":
+            from .levelset import LevelSetField
+
+            return LevelSetField.load(path)
         if kind == "hashgrid":
             from .hashgrid import HashGridField
 
