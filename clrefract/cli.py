@@ -74,8 +74,7 @@ def _cmd_render(args) -> int:
         dataset = Dataset(Path(args.dataset))
         box = dataset.box
     field = _field_for_render(args.field, box)
-    if field.uses_window():  # a learned field is 1 outside its own box: fly straight to it
-        box = field.box
+    box = field.tracing_box(box)
     if args.cameras:
         cameras = load_transforms(Path(args.cameras))
     elif dataset is not None:

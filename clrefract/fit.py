@@ -344,9 +344,9 @@ class Fit:
         if self.cfg.field == "levelset":
             best = (np.inf, 1.0, 0.0, 0.0)
             for sigma in hull.width * np.array([0.0, 1.0, 2.0, 3.0, 4.0, 6.0]):
-                h = hull.smoothed(sigma)
-                start = None if best[1] == 1.0 else best[1]
-                trial = self._search_levelset(h, idx, etas, start)
+                # the first smoothing searches the whole index range, the others near its pick
+                start = best[1] if np.isfinite(best[0]) else None
+                trial = self._search_levelset(hull.smoothed(sigma), idx, etas, start)
                 if trial[0] < best[0]:
                     best = (*trial, float(sigma))
             loss, eta, offset, sigma = best
@@ -389,8 +389,8 @@ class Fit:
             if trial[0] < loss:
                 (loss, eta), offset = trial, float(o)
         fine = eta + (etas[1] - etas[0]) * np.linspace(-0.75, 0.75, 7)
-        cands = [(loss, eta)] + [(self._loss_of(hull, idx, e, offset), float(e)) for e in fine]
-        loss, eta = min(c for c in cands if c[1] > 1)
+        cands = [(self._loss_of(hull, idx, e, offset), float(e)) for e in fine if e > 1]
+        loss, eta = min([(loss, eta), *cands])
         return loss, eta, offset
 
     def _search_levelset(self, hull, idx, etas, eta=None):

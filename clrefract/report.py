@@ -78,7 +78,7 @@ def _tracer(fit, field):
 
     return Tracer(
         field,
-        field.box if field.uses_window() else fit.box,
+        field.tracing_box(fit.box),
         step=fit.cfg.step_mm,
         precision=fit.cfg.precision,
         lanes=fit.cfg.lanes or None,

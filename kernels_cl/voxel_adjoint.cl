@@ -12,12 +12,22 @@
  * is the cell (i * VOX_NY + j) * VOX_NZ + k; the taps are its 4 x 4 x 4 nodes as the gather
  * reads them (x, y clamped; z folded from kb, see vox_axis4zv). */
 #if VOX_LEVELSET
-/* the index n is shared by every ray: summed per work-item in its slot of `partial` */
-#define LS_ACC_DECL __global REAL *ls_acc = partial + get_global_id(0);
-#define FIELD_ACC_PARAM , int *vcell, REAL(*vacc)[LANES], __global REAL *ls_acc
+/* the index n is shared by every ray: each lane sums its gradient along the ray in a private
+ * vector, and the work-item writes the sum of its lanes to its own slot of `partial` */
+#define LS_ACC_DECL realv ls_acc[1] = {RV(0)};
+#define LS_ACC_FLUSH(partial, gid)                                                           \
+    {                                                                                        \
+        REAL s_[LANES], t_ = 0;                                                              \
+        VSTORE(ls_acc[0], 0, s_);                                                            \
+        for (int l_ = 0; l_ < LANES; ++l_)                                                   \
+            t_ += s_[l_];                                                                    \
+        partial[gid] = t_;                                                                   \
+    }
+#define FIELD_ACC_PARAM , int *vcell, REAL(*vacc)[LANES], realv *ls_acc
 #define FIELD_ACC_ARG , vcell, vacc, ls_acc
 #else
 #define LS_ACC_DECL
+#define LS_ACC_FLUSH(partial, gid)
 #define FIELD_ACC_PARAM , int *vcell, REAL(*vacc)[LANES]
 #define FIELD_ACC_ARG , vcell, vacc
 #endif
@@ -32,7 +42,8 @@
     }
 #define FIELD_ACC_FLUSH(grad, partial, gid)                                                  \
     for (int l_ = 0; l_ < LANES; ++l_)                                                       \
-        voxel_flush_lane(grad, vcell[l_], vacc, l_)
+        voxel_flush_lane(grad, vcell[l_], vacc, l_);                                         \
+    LS_ACC_FLUSH(partial, gid)
 
 /* Add lane l's splats of `cell` to grad and zero them. */
 VOX_INLINE void voxel_flush_lane(__global REAL *grad, int cell, REAL (*acc)[LANES], int l) {
@@ -141,18 +152,11 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
     act = act && dS != RV(0);
     if (!ANY(act))
         return eta;
-    {
-        /* d eta / dn = W S, d grad eta / dn = gW S + W dS grad phi */
-        realv mp = mx * pg[0] + my * pg[1] + mz * pg[2];
-        realv dn = w * ((mx * ge0 + my * ge1 + mz * ge2) * W * S +
-                        eta * (S * (mx * gw[0] + my * gw[1] + mz * gw[2]) + W * dS * mp));
-        REAL dns[LANES];
-        VSTORE(SEL(RV(0), dn, act), 0, dns);
-        REAL sum = 0;
-        for (int l = 0; l < LANES; ++l)
-            sum += dns[l];
-        *ls_acc += sum;
-    }
+    /* d eta / dn = W S, d grad eta / dn = gW S + W dS grad phi */
+    realv mp = mx * pg[0] + my * pg[1] + mz * pg[2];
+    realv dn = w * ((mx * ge0 + my * ge1 + mz * ge2) * W * S +
+                    eta * (S * (mx * gw[0] + my * gw[1] + mz * gw[2]) + W * dS * mp));
+    *ls_acc += SEL(RV(0), dn, act);
 #else
     if (!ANY(act))
         return eta;
@@ -175,7 +179,7 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
     realv B = w * eta * W;
 #if VOX_LEVELSET
     /* d g1 / d theta = F' c, d grad g1 / d theta = F'' c grad phi + F' grad c */
-    A = f1 * A + w * eta * W * f2 * (mx * pg[0] + my * pg[1] + mz * pg[2]);
+    A = f1 * A + w * eta * W * f2 * mp;
     B = f1 * B;
 #endif
     A = SEL(RV(0), A, act);

@@ -99,6 +99,11 @@ class Field:
     def uses_window(self) -> bool:
         return False
 
+    def tracing_box(self, box: Box) -> Box:
+        """The box to trace this field in: a learned field is 1 outside its own box (its
+        window), so rays fly straight to that; an analytic one uses `box`."""
+        return self.box if self.uses_window() else box
+
     @property
     def suggested_step(self) -> float:
         """A step (mm) that resolves the field's finest feature; steps much larger than a

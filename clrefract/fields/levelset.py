@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import ClrefractError
 from ..imageio import atomic_path
 from .base import Box, Field, _smoother, _smoother_d, box_window
-from .voxel import _nodes, _shape, interpolate
+from .voxel import _nodes, _shape, grid_defines, interpolate
 
 
 class LevelSetField(Field):
@@ -69,14 +69,8 @@ class LevelSetField(Field):
         return self.box.size / (np.asarray(self.phi.shape) - 1)
 
     def defines(self) -> dict:
-        nx, ny, nz = self.shape
         return {
-            "FIELD_VOXEL": 1,
-            "VOX_NX": nx,
-            "VOX_NY": ny,
-            "VOX_NZ": nz,
-            "VOX_SMOOTH": 0,
-            "VOX_BSPLINE": 1,
+            **grid_defines(self.shape, "bspline"),
             "VOX_LEVELSET": 1,
             "LS_WIDTH": repr(self.width),
         }
@@ -158,20 +152,20 @@ class LevelSetField(Field):
         width w while the surface moves."""
         phi = np.asarray(params[:-1], np.float64).reshape(self.phi.shape)
         h = self.spacing
-        g = []
-        for ax in range(3):
-            hi, lo = [slice(1, -1)] * 3, [slice(1, -1)] * 3
-            hi[ax], lo[ax] = slice(2, None), slice(0, -2)
-            g.append((phi[tuple(hi)] - phi[tuple(lo)]) / (2 * h[ax]))
+
+        def shifted(ax: int, side: slice) -> tuple:  # interior nodes' neighbours along ax
+            sl = [slice(1, -1)] * 3
+            sl[ax] = side
+            return tuple(sl)
+
+        up, down = slice(2, None), slice(0, -2)
+        g = [(phi[shifted(a, up)] - phi[shifted(a, down)]) / (2 * h[a]) for a in range(3)]
         r = g[0] ** 2 + g[1] ** 2 + g[2] ** 2 - 1.0
-        count = r.size
         grad = np.zeros_like(phi)
-        for ax in range(3):
-            c = 4 * r * g[ax] / (2 * h[ax]) / count
-            hi, lo = [slice(1, -1)] * 3, [slice(1, -1)] * 3
-            hi[ax], lo[ax] = slice(2, None), slice(0, -2)
-            grad[tuple(hi)] += c
-            grad[tuple(lo)] -= c
+        for a in range(3):
+            c = 4 * r * g[a] / (2 * h[a]) / r.size
+            grad[shifted(a, up)] += c
+            grad[shifted(a, down)] -= c
         return float((r * r).mean()), np.concatenate([grad.ravel(), [0.0]])
 
     def node_points(self) -> np.ndarray:

@@ -146,6 +146,19 @@ def interpolate(values, box: Box, pts, interp: str = "trilinear"):
     return g, grad
 
 
+def grid_defines(shape, interp: str) -> dict:
+    """Build defines of a node grid (field_voxel.cl) of this shape and interpolation."""
+    nx, ny, nz = shape
+    return {
+        "FIELD_VOXEL": 1,
+        "VOX_NX": nx,
+        "VOX_NY": ny,
+        "VOX_NZ": nz,
+        "VOX_SMOOTH": int(interp == "smoothstep"),
+        "VOX_BSPLINE": int(interp == "bspline"),
+    }
+
+
 def _check_values(values: np.ndarray, bound: float | None) -> None:
     """Shape and finiteness always; the range [1, bound] where a bound is given."""
     if values.ndim != 3 or min(values.shape) < 2:
@@ -220,15 +233,7 @@ class VoxelGrid(Field):
         return self.box.size / (np.asarray(self.values.shape) - 1)
 
     def defines(self) -> dict:
-        nx, ny, nz = self.shape
-        return {
-            "FIELD_VOXEL": 1,
-            "VOX_NX": nx,
-            "VOX_NY": ny,
-            "VOX_NZ": nz,
-            "VOX_SMOOTH": int(self.smooth),
-            "VOX_BSPLINE": int(self.interp == "bspline"),
-        }
+        return grid_defines(self.shape, self.interp)
 
     def params(self) -> np.ndarray:
         return np.zeros(1)
