@@ -33,26 +33,39 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
         "--lanes",
         type=int,
         default=None,
-        help="rays per work-item (default: 16 on CPUs, 1 on GPUs)",
+        help="rays per work-item (default: the widest the driver builds, up to 16, on CPUs; "
+        "1 on GPUs)",
     )
     g.add_argument("--max-steps", type=int, default=None, help="step cap per ray")
 
 
 def _cmd_devices(args) -> int:
+    from .probe import lane_report
     from .runtime import INSTALL_HINT, list_devices
 
     infos = list_devices()
     if not infos:
         print(f"No OpenCL platform or device found. {INSTALL_HINT}")
         return 1
-    print(f"{'id':5} {'type':5} {'CUs':>4} {'memory':>9} {'fp64':5} {'f-atomics':9} device")
+    print(
+        f"{'id':5} {'type':5} {'CUs':>4} {'memory':>9} {'fp64':5} {'f-atomics':9} "
+        f"{'lanes':11} device"
+    )
+    problems = []
     for i in infos:
         mem = f"{i.global_mem_bytes / 2**30:.1f} GiB"
+        rep = lane_report(i, "float32")
+        lanes = "/".join(str(w) for w in rep["widths"]) or "none"
+        if not rep["widths"]:
+            why = next((r.get("why") for r in rep["results"] if r.get("why")), rep["note"])
+            problems.append(f"{i.selector}: cannot build the kernels: {why}")
         print(
             f"{i.selector:5} {i.kind:5} {i.compute_units:4d} {mem:>9} "
             f"{'yes' if i.fp64 else 'no':5} {'yes' if i.float_atomics else 'no':9} "
-            f"{i.platform} / {i.name} ({i.version})"
+            f"{lanes:11} {i.platform} / {i.name} ({i.version}, driver {i.driver_version})"
         )
+    for line in problems:
+        print(line)
     return 0
 
 
@@ -237,6 +250,9 @@ def _cmd_fit(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="clrefract", description=__doc__)
+    ap.add_argument(
+        "--verbose", action="store_true", help="show OpenCL compiler warnings and build logs"
+    )
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("devices", help="list OpenCL platforms and devices")
@@ -336,6 +352,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.verbose:
+        from .runtime import set_verbose
+
+        set_verbose(True)
     try:
         return args.func(args)
     except ClrefractError as exc:

@@ -2,28 +2,51 @@
 
 One `Runtime` owns the context, its queues and every program built for it. Programs are
 specialised at build time by preprocessor defines (field kind, integrator, precision, lanes)
-and cached by their full source and options, so each specialisation compiles once.
+and cached by their full source and options, so each specialisation compiles once per process;
+across processes the driver's own cache (PoCL, NVIDIA) or pyopencl's binary cache keeps them.
+The lane widths a device may use come from a probe (clrefract.probe), cached per driver.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
+import re
+import time
 import warnings
 from dataclasses import dataclass
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 
-from .errors import ClrefractError
+from .errors import BuildError, ClrefractError
 
 INSTALL_HINT = (
-    "Install an OpenCL driver: `pip install 'clrefract[pocl]'` brings a CPU driver (PoCL) through "
-    "pip alone; on Debian/Ubuntu `apt-get install pocl-opencl-icd` gives a faster one; GPU vendors "
-    "ship their own (NVIDIA, AMD ROCm, Intel compute-runtime, Apple)."
+    "Install an OpenCL driver: `pip install 'clrefract[pocl]'` or `pip install 'clrefract[cpu]'` "
+    "(Intel's CPU runtime, for any x86-64 CPU) bring one through pip alone; on Debian/Ubuntu "
+    "`apt-get install pocl-opencl-icd` gives a fast one; GPU vendors ship their own (NVIDIA, AMD "
+    "ROCm, Intel compute-runtime, Apple)."
 )
+CPU_HINT = (
+    "Other CPU drivers: Debian/Ubuntu's `apt-get install pocl-opencl-icd`, or `pip install "
+    "'clrefract[cpu]'` (Intel's CPU OpenCL runtime through pip); `clrefract devices` lists what "
+    "is installed and `--device` picks one."
+)
+
+# CLREFRACT_VERBOSE=1 (or --verbose) shows compiler warnings and build logs
+VERBOSE = bool(os.environ.get("CLREFRACT_VERBOSE"))
+
+
+def set_verbose(on: bool) -> None:
+    global VERBOSE
+    VERBOSE = bool(on)
 
 
 def _cl():
+    from .drivers import register_pip_drivers
+
+    register_pip_drivers()
     try:
         import pyopencl as cl
     except ImportError as exc:  # pragma: no cover - dependency is declared
@@ -36,6 +59,10 @@ def kernel_source(name: str) -> str:
     try:
         return resources.files("clrefract.kernels_cl").joinpath(name).read_text()
     except (FileNotFoundError, ModuleNotFoundError) as exc:
+        # a checkout's own clrefract/ (tests run from the repository) has kernels_cl/ beside it
+        beside = Path(__file__).resolve().parent.parent / "kernels_cl" / name
+        if beside.is_file():
+            return beside.read_text()
         raise ClrefractError(f"kernel source {name!r} is missing from the package: {exc}") from None
 
 
@@ -46,6 +73,8 @@ class DeviceInfo:
     platform: str
     name: str
     kind: str  # "cpu", "gpu" or "other"
+    platform_version: str
+    driver_version: str
     compute_units: int
     global_mem_bytes: int
     fp64: bool
@@ -55,6 +84,11 @@ class DeviceInfo:
     @property
     def selector(self) -> str:
         return f"{self.platform_index}:{self.device_index}"
+
+    @property
+    def driver(self) -> str:
+        """The driver as a user would name it: platform, driver version, device."""
+        return f"{self.platform} {self.driver_version} ({self.name})"
 
 
 def _device_kind(cl, dev) -> str:
@@ -87,6 +121,8 @@ def list_devices() -> list[DeviceInfo]:
                     platform=plat.name.strip(),
                     name=dev.name.strip(),
                     kind=_device_kind(cl, dev),
+                    platform_version=plat.version.strip(),
+                    driver_version=dev.driver_version.strip(),
                     compute_units=int(dev.max_compute_units),
                     global_mem_bytes=int(dev.global_mem_size),
                     fp64=("cl_khr_fp64" in ext) or bool(dev.double_fp_config),
@@ -97,8 +133,29 @@ def list_devices() -> list[DeviceInfo]:
     return out
 
 
-def _pick_device(selector: str | None):
-    """Device from 'P:D', 'P', a name substring, or PYOPENCL_CTX; else the first GPU, else CPU."""
+def lane_widths(info: DeviceInfo, precision: str) -> list[int]:
+    """Lane widths the device builds and runs correctly (probed once per driver)."""
+    from .probe import lane_report
+
+    return lane_report(info, precision)["widths"]
+
+
+def _unusable(info: DeviceInfo) -> str:
+    """Why a device cannot run clrefract's kernels ('' when it can)."""
+    from .probe import lane_report
+
+    rep = lane_report(info, "float32")
+    if rep["widths"]:
+        return ""
+    first = next((r.get("why") for r in rep["results"] if r.get("why")), rep.get("note", ""))
+    if "unknown target CPU" in (first or ""):
+        first += " (the driver's LLVM does not recognise this CPU)"
+    return first or "no lane width builds"
+
+
+def _pick_device(selector: str | None, probe: bool = True):
+    """Device from 'P:D', 'P', a name substring, or PYOPENCL_CTX; else the first GPU, else the
+    first other device whose driver can build the kernels (probed once, then cached)."""
     cl = _cl()
     infos = list_devices()
     if not infos:
@@ -123,8 +180,19 @@ def _pick_device(selector: str | None):
                 f"(select with --device P:D or PYOPENCL_CTX):\n{listing}"
             )
     else:
-        gpus = [i for i in infos if i.kind == "gpu"]
-        chosen = gpus[0] if gpus else infos[0]
+        order = [i for i in infos if i.kind == "gpu"] + [i for i in infos if i.kind != "gpu"]
+        chosen, failures = (order[0] if not probe else None), []
+        for info in order if probe else ():
+            why = _unusable(info)
+            if not why:
+                chosen = info
+                break
+            failures.append(f"{info.selector} {info.driver}: {why}")
+        if chosen is None:
+            raise ClrefractError(
+                f"No OpenCL device here can build clrefract's kernels ({'; '.join(failures)}). "
+                f"{CPU_HINT}"
+            )
     dev = cl.get_platforms()[chosen.platform_index].get_devices()[chosen.device_index]
     return chosen, dev
 
@@ -132,25 +200,68 @@ def _pick_device(selector: str | None):
 class Runtime:
     """Context, command queues and compiled programs for one OpenCL device."""
 
-    def __init__(self, device: str | None = None, queues: int = 1):
+    def __init__(self, device: str | None = None, queues: int = 1, probe_lanes: bool = True):
         cl = _cl()
         self.cl = cl
-        self.info, self.device = _pick_device(device)
+        self.probe_lanes = probe_lanes
+        self.info, self.device = _pick_device(device, probe=probe_lanes)
         self.context = cl.Context([self.device])
         if queues < 1:
             raise ClrefractError(f"number of queues must be at least 1, got {queues}")
         self.queues = [cl.CommandQueue(self.context) for _ in range(queues)]
         self._programs: dict[tuple, Kernels] = {}
+        self.build_seconds: dict[tuple, float] = {}  # per program built by this runtime
+        self._widths: dict[str, list[int]] = {}
 
     @property
     def queue(self):
         return self.queues[0]
 
+    def lane_widths(self, precision: str) -> list[int]:
+        """Lane widths this device's driver builds and runs correctly."""
+        if not self.probe_lanes:
+            from .probe import WIDTHS
+
+            return list(WIDTHS)
+        if precision not in self._widths:
+            self._widths[precision] = lane_widths(self.info, precision)
+        return self._widths[precision]
+
     def default_lanes(self, precision: str) -> int:
-        """Rays per work-item: SIMD lanes on CPUs (PoCL does not vectorise looping kernels)."""
-        if self.info.kind == "cpu":
-            return 16 if precision == "float32" else 8
-        return 1
+        """Rays per work-item: SIMD lanes on CPUs (PoCL does not vectorise looping kernels),
+        the widest the driver handles up to 16 (float32) or 8 (float64); 1 on GPUs."""
+        want = (16 if precision == "float32" else 8) if self.info.kind == "cpu" else 1
+        ok = [w for w in self.lane_widths(precision) if w <= want]
+        if not ok:
+            raise ClrefractError(self._no_lanes_message(precision))
+        return max(ok)
+
+    def check_lanes(self, lanes: int, precision: str) -> None:
+        """A one-line error when the driver cannot build `lanes`-wide kernels."""
+        if lanes not in (1, 2, 4, 8, 16):
+            raise ClrefractError(f"lanes must be 1, 2, 4, 8 or 16, got {lanes}")
+        ok = self.lane_widths(precision)
+        if lanes not in ok:
+            if not ok:
+                raise ClrefractError(self._no_lanes_message(precision))
+            raise ClrefractError(
+                f"{self.info.driver} cannot build {precision} kernels at {lanes} lanes "
+                f"(probe: {self._probe_why(lanes, precision)}); use --lanes {max(ok)} or "
+                "leave --lanes unset"
+            )
+
+    def _probe_why(self, lanes: int, precision: str) -> str:
+        from .probe import lane_report
+
+        rep = lane_report(self.info, precision)
+        rec = next((r for r in rep["results"] if r["lanes"] == lanes), {})
+        return rec.get("why") or rep.get("note") or "failed"
+
+    def _no_lanes_message(self, precision: str) -> str:
+        return (
+            f"{self.info.driver} cannot build clrefract's {precision} kernels at any lane width "
+            f"({self._probe_why(1, precision)}). {CPU_HINT}"
+        )
 
     def check_precision(self, precision: str) -> None:
         if precision not in ("float32", "float64"):
@@ -161,16 +272,29 @@ class Runtime:
                 "use --precision float32 or pick another device (`clrefract devices`)."
             )
 
-    def build(self, sources: list[str], defines: dict[str, object], precision: str) -> Kernels:
-        """Compile (once) the concatenation of the named package sources with these defines."""
+    def build(
+        self,
+        sources: list[str],
+        defines: dict[str, object],
+        precision: str,
+        extra_source: str = "",
+    ) -> Kernels:
+        """Compile (once) the concatenation of the named package sources with these defines,
+        followed by `extra_source` (kernels of a test or a tool)."""
         self.check_precision(precision)
-        key = (tuple(sources), tuple(sorted((k, str(v)) for k, v in defines.items())), precision)
+        key = (
+            tuple(sources),
+            tuple(sorted((k, str(v)) for k, v in defines.items())),
+            precision,
+            extra_source,
+        )
         prg = self._programs.get(key)
         if prg is not None:
             return prg
         header = ["#define REAL_IS_DOUBLE 1" if precision == "float64" else ""]
         header += [f"#define {k} {v}" for k, v in sorted(defines.items())]
         text = "\n".join(header) + "\n" + "\n".join(kernel_source(s) for s in sources)
+        text += "\n" + extra_source
         options = ["-cl-std=CL1.2"]
         if self.info.float_atomics and self._opencl_c_3():
             # atomic float add from cl_ext_float_atomics instead of compare-and-swap loops
@@ -178,17 +302,51 @@ class Runtime:
         if precision == "float32":
             # unsuffixed literals stay single precision on devices without fp64
             options.append("-cl-single-precision-constant")
+        if not VERBOSE:
+            options.append("-w")
+        t0 = time.perf_counter()
         try:
             with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
+                if not VERBOSE:
+                    warnings.simplefilter("ignore")
                 prg = self.cl.Program(self.context, text).build(options=options)
         except self.cl.RuntimeError as exc:
-            raise ClrefractError(
-                f"OpenCL build of {', '.join(sources)} failed on {self.info.name!r} "
-                f"with defines {defines}:\n{exc}"
-            ) from None
+            msg, first = self._build_failure(sources, defines, text, str(exc))
+            raise BuildError(msg, first) from None
+        self.build_seconds[key] = time.perf_counter() - t0
         self._programs[key] = Kernels(self.cl, prg)
         return self._programs[key]
+
+    def _build_failure(self, sources, defines, text: str, log: str) -> tuple[str, str]:
+        """One line naming the driver, the program and the way round, and the compiler's first
+        error; the whole log goes to a file."""
+        from .probe import cache_dir
+
+        first = next(
+            (s.strip() for s in log.splitlines() if "error" in s.lower() and "failed" not in s),
+            log.strip().splitlines()[0] if log.strip() else "no build log",
+        )
+        # drop the driver's temporary file name and position
+        first = re.sub(r"\S+\.cl:\d+:\d+(\s*<Spelling=[^>]*>)?:\s*", "", first)[:200]
+        where = ""
+        try:
+            tag = hashlib.sha1(text.encode()).hexdigest()[:12]
+            path = cache_dir() / "build-logs" / f"{sources[-1].split('.')[0]}-{tag}.log"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(f"driver: {self.info.driver}\ndefines: {defines}\n\n{log}\n")
+            where = f"; full log: {path}"
+        except OSError:
+            pass
+        lanes = defines.get("LANES", 1)
+        hint = (
+            f"try --lanes {int(lanes) // 2} or another device"
+            if int(lanes) > 1
+            else "try another device"
+        )
+        return (
+            f"OpenCL build of {sources[-1]} ({lanes} lanes) failed on {self.info.driver}: "
+            f"{first} ({hint}; `clrefract devices` lists them){where}"
+        ), first
 
     def _opencl_c_3(self) -> bool:
         try:

@@ -76,8 +76,7 @@ class Tracer:
         self.field, self.box, self.step = field, box or Box(), float(step)
         self.integrator, self.precision = integrator, precision
         self.lanes = lanes or self.runtime.default_lanes(precision)
-        if self.lanes not in (1, 2, 4, 8, 16):
-            raise ClrefractError(f"lanes must be 1, 2, 4, 8 or 16, got {self.lanes}")
+        self.runtime.check_lanes(self.lanes, precision)
         if max_steps is None:
             # a ray bent inside the box rarely travels more than a few diagonals
             diag = float(np.linalg.norm(self.box.size))

@@ -13,7 +13,7 @@ from clrefract.fields.base import Box
 from clrefract.fields.hashgrid import HashGridConfig, HashGridField
 from clrefract.fit import Fit, load_config
 from clrefract.gradient import GradientEngine
-from clrefract.runtime import Runtime, kernel_source
+from clrefract.runtime import Runtime
 
 BOX = Box(margin=4.0)
 # N = 3, 4, 7, 12 with T = 2^10: levels 0-2 dense, level 3 hashed
@@ -77,12 +77,8 @@ def kernel_adjoint_terms(field, pts, mu, w, precision, lanes):
     cl = rt.cl
     dt = rt.real_dtype(precision)
     defines = {**field.defines(), **field.box.defines(), "LANES": lanes}
-    head = ["#define REAL_IS_DOUBLE 1" if precision == "float64" else ""]
-    head += [f"#define {k} {v}" for k, v in defines.items()]
     sources = ["common.h", field.source, field.adjoint_source]
-    text = "\n".join(head) + "\n" + "\n".join(map(kernel_source, sources)) + POINTS_KERNEL
-    opts = ["-cl-std=CL1.2"] + (["-cl-single-precision-constant"] if dt == np.float32 else [])
-    prg = cl.Program(rt.context, text).build(options=opts)
+    prg = rt.build(sources, defines, precision, extra_source=POINTS_KERNEL)
     n = len(pts)
     mf = cl.mem_flags
 
@@ -99,9 +95,7 @@ def kernel_adjoint_terms(field, pts, mu, w, precision, lanes):
     b_grad = cl.Buffer(rt.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=grad)
     b_part = cl.Buffer(rt.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=partial)
     fp, fd = buf(np.append(field.params(), 0)), buf(np.append(field.data(), 0))
-    cl.Kernel(prg, "adjoint_points")(
-        rt.queue, (n // lanes,), None, fp, fd, *cols, b_out, b_grad, b_part
-    )
+    prg.adjoint_points(rt.queue, (n // lanes,), None, fp, fd, *cols, b_out, b_grad, b_part)
     for a, b in ((out, b_out), (grad, b_grad), (partial, b_part)):
         cl.enqueue_copy(rt.queue, a, b)
     out = out.astype(np.float64).reshape(7, n)

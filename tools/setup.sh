@@ -1,22 +1,35 @@
 #!/usr/bin/env bash
 # Set up clrefract on a fresh machine: an OpenCL CPU driver and a virtual environment in .venv.
 # Idempotent; safe to run before every command.
+#
+#   bash tools/setup.sh                 Debian's PoCL where apt works (else pip's drivers), .venv
+#   bash tools/setup.sh --pip-only DIR  a venv at DIR with pip's drivers alone and a plain
+#                                       (non-editable) install, as a user without root has it
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+if [ "${1:-}" = "--pip-only" ]; then
+  venv="${2:?usage: setup.sh --pip-only DIR}"
+  [ -x "$venv/bin/python" ] || python3 -m venv "$venv"
+  "$venv/bin/python" -m pip install -q --upgrade pip
+  # both pip CPU drivers: PoCL, and Intel's runtime for CPUs pip PoCL's LLVM 14 does not know
+  "$venv/bin/python" -m pip install -q ".[test,pocl,cpu]"
+  exit 0
+fi
 
 have_icd() { ls /etc/OpenCL/vendors/*.icd >/dev/null 2>&1; }
 
 # Debian's PoCL is faster than the pip wheel (SPEC section 7); use it where apt works.
 if ! have_icd && command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
   (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
-      pocl-opencl-icd ocl-icd-libopencl1 >/dev/null) || echo "setup: apt failed, using pip PoCL"
+      pocl-opencl-icd ocl-icd-libopencl1 >/dev/null) || echo "setup: apt failed, using pip's drivers"
 fi
 
 if [ ! -x .venv/bin/python ]; then
   python3 -m venv .venv
 fi
 extras="test"
-have_icd || extras="test,pocl"
+have_icd || extras="test,pocl,cpu"
 stamp=".venv/.clrefract-installed-$extras-$(sha1sum pyproject.toml | cut -c1-12)"
 if [ ! -f "$stamp" ]; then
   .venv/bin/python -m pip install -q --upgrade pip

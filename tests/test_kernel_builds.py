@@ -1,0 +1,196 @@
+"""Every kernel family builds and runs at every lane width device selection can pick, on
+whatever driver runs the tests, and the driver probe behind that choice."""
+
+import subprocess
+
+import numpy as np
+import pytest
+
+from clrefract import probe, runtime
+from clrefract.envmap import EnvMap
+from clrefract.errors import BuildError, ClrefractError
+from clrefract.fields import field_from_spec
+from clrefract.fields.base import Box
+from clrefract.fields.hashgrid import HashGridConfig, HashGridField
+from clrefract.fields.levelset import LevelSetField
+from clrefract.fields.voxel import VoxelGrid
+from clrefract.gradient import GradientEngine
+from clrefract.runtime import default_runtime
+from clrefract.snell import SnellRenderer
+from clrefract.tracer import Status, Tracer
+
+BOX = Box()
+ANALYTIC = ["luneburg", "maxwell", "fibre", "blobs", "sphere", "prism", "drop"]
+FITTED = ["voxel-trilinear", "voxel-smoothstep", "voxel-bspline", "levelset", "hashgrid"]
+
+
+def _selected_widths():
+    """(precision, lanes) pairs selection can produce: the default per precision, and 1."""
+    rt = default_runtime()
+    pairs = {("float32", rt.default_lanes("float32")), ("float32", 1)}
+    if rt.info.fp64:
+        pairs.add(("float64", rt.default_lanes("float64")))
+    return sorted(pairs)
+
+
+def _fitted_field(kind: str):
+    g = np.linspace(-1, 1, 12)
+    x, y, z = np.meshgrid(g, g, g, indexing="ij")
+    r = np.sqrt(x**2 + y**2 + z**2) * 50
+    if kind.startswith("voxel"):
+        return VoxelGrid(1 + 0.3 * np.exp(-((r / 18) ** 2)), BOX, interp=kind.split("-")[1])
+    if kind == "levelset":
+        return LevelSetField(r - 20, BOX, eta=1.5, width=4.0)
+    cfg = HashGridConfig(levels=3, log2_table=10, n_min=4, n_max=16, hidden=8, eta_max=1.5)
+    return HashGridField(cfg, BOX, seed=1)
+
+
+def _rays(n=32, seed=0):
+    rng = np.random.default_rng(seed)
+    target = rng.uniform(-15, 15, size=(n, 3))
+    origins = np.tile([0.0, -150.0, 0.0], (n, 1)) + rng.normal(scale=5, size=(n, 3))
+    d = target - origins
+    return origins, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _trace(field, precision, lanes):
+    tr = Tracer(field, BOX, step=0.5, precision=precision, lanes=lanes)
+    o, d = _rays()
+    res = tr.trace(o, d)
+    return res
+
+
+@pytest.mark.parametrize("precision,lanes", _selected_widths())
+@pytest.mark.parametrize("kind", ANALYTIC)
+def test_analytic_trace_builds_and_agrees_with_one_lane(kind, precision, lanes):
+    field = field_from_spec(kind)
+    res = _trace(field, precision, lanes)
+    ref = _trace(field, precision, 1)
+    assert np.all(res.status != Status.NONFINITE) and np.all(np.isfinite(res.direction))
+    assert np.array_equal(res.status, ref.status)
+    out = res.status == Status.EXITED
+    assert out.sum() >= 8 or kind == "fibre"  # the fibre guides most rays to the step cap
+    tol = 1e-4 if precision == "float32" else 1e-10
+    assert np.abs(res.direction - ref.direction)[out].max(initial=0) < tol
+
+
+@pytest.mark.parametrize("precision,lanes", _selected_widths())
+@pytest.mark.parametrize("kind", FITTED)
+def test_fitted_forward_and_backward_build_and_agree_with_one_lane(kind, precision, lanes):
+    env = EnvMap.procedural(64, 32, seed=3)
+    o, d = _rays(48, seed=2)
+    target = np.full((len(o), 3), 0.3)
+    grads = []
+    for p, n in ((precision, lanes), (precision, 1)):
+        eng = GradientEngine(_fitted_field(kind), BOX, step=0.5, precision=p, lanes=n)
+        r = eng.loss_and_grad(o, d, target, env)
+        assert np.isfinite(r.loss) and np.all(np.isfinite(r.grad))
+        grads.append(r.grad)
+    g, g1 = grads
+    assert np.abs(g1).max() > 0, "no ray carried gradient"
+    tol = 1e-3 if precision == "float32" else 1e-9
+    assert np.abs(g - g1).max() <= tol * np.abs(g1).max()
+
+
+def test_snell_kernel_builds():
+    o, d = _rays()
+    res = SnellRenderer(field_from_spec("sphere"), BOX).trace(o, d)
+    assert np.all(res.status == Status.EXITED) and np.all(np.isfinite(res.direction))
+
+
+def test_probe_passes_at_the_selected_widths_against_numpy():
+    rt = default_runtime()
+    for precision, lanes in _selected_widths():
+        rec = probe.probe_width(rt, lanes, precision)
+        assert rec["ok"], rec
+        assert rec["error"] < (1e-4 if precision == "float32" else 1e-10)
+        assert lanes in rt.lane_widths(precision)
+
+
+def test_probe_reference_is_the_kernel_formula():
+    # spot values of the closed form the kernel computes
+    a = np.array([0.75, 1.5])
+    s = np.clip(a - 0.5, 0, 1)
+    want = (
+        np.sqrt(a)
+        + 1 / np.sqrt(a)
+        + np.exp(-a)
+        + np.log1p(a)
+        + np.sin(a)
+        + np.cos(a)
+        + np.arccos(a - 1)
+        + np.abs(1 - a)
+        + np.floor(3 * a)
+        + 1.25 * a
+        + np.minimum(a, 1)
+        + np.maximum(a, 1.5)
+        + np.array([0.75, -1.5])
+        + np.array([-1, 1])
+        + s**3 * (s * (6 * s - 15) + 10)
+        + np.array([0, 1])
+        + np.array([3, 5])
+    )
+    assert np.allclose(probe.reference(a), want, rtol=1e-14)
+
+
+def test_lane_report_is_cached_and_survives_an_aborting_driver(tmp_path, monkeypatch):
+    monkeypatch.setenv("CLREFRACT_CACHE_DIR", str(tmp_path))
+    info = default_runtime().info
+    lines = [
+        '{"lanes": 1, "ok": true}',
+        '{"lanes": 2, "ok": true}',
+        '{"lanes": 4, "ok": true}',
+        '{"lanes": 8, "ok": false, "why": "wrong results (error 1e-2)"}',
+    ]
+
+    def aborting(cmd, **kw):  # a driver that dies at 16 lanes, as pip PoCL 3.0 did on znver3
+        assert cmd[1:3] == ["-m", "clrefract.probe"]
+        return subprocess.CompletedProcess(
+            cmd, -6, "\n".join(lines) + "\n", "LLVM ERROR: Cannot select: fsqrt\n"
+        )
+
+    monkeypatch.setattr(probe.subprocess, "run", aborting)
+    rep = probe.lane_report(info, "float32")
+    assert rep["widths"] == [1, 2, 4]
+    last = next(r for r in rep["results"] if r["lanes"] == 16)
+    assert not last["ok"] and "code -6" in last["why"] and "LLVM ERROR" in last["why"]
+
+    def must_not_run(cmd, **kw):
+        raise AssertionError("the cached report should have been used")
+
+    monkeypatch.setattr(probe.subprocess, "run", must_not_run)
+    assert probe.lane_report(info, "float32")["widths"] == [1, 2, 4]
+
+
+def test_lane_widths_the_driver_cannot_build_are_refused_in_one_line(monkeypatch):
+    rt = runtime.Runtime(default_runtime().info.selector)
+    monkeypatch.setattr(rt, "lane_widths", lambda precision: [1, 2, 4, 8])
+    assert rt.default_lanes("float32") == (8 if rt.info.kind == "cpu" else 1)
+    with pytest.raises(ClrefractError, match=r"cannot build float32 kernels at 16 lanes") as e:
+        Tracer(field_from_spec("sphere"), BOX, lanes=16, runtime=rt)
+    assert "--lanes 8" in str(e.value) and "\n" not in str(e.value)
+    monkeypatch.setattr(rt, "lane_widths", lambda precision: [])
+    with pytest.raises(ClrefractError, match="cannot build clrefract's float32 kernels"):
+        rt.default_lanes("float32")
+
+
+def test_a_failed_build_is_one_line_naming_the_driver_with_the_log_on_disk(tmp_path, monkeypatch):
+    monkeypatch.setenv("CLREFRACT_CACHE_DIR", str(tmp_path))
+    rt = default_runtime()
+    with pytest.raises(BuildError) as e:
+        rt.build(["probe.cl"], {"LANES": 4}, "float32")  # without common.h: no realv
+    msg = str(e.value)
+    assert "\n" not in msg and "probe.cl" in msg and rt.info.driver in msg
+    assert "--lanes 2" in msg and e.value.compiler_error
+    logs = list((tmp_path / "build-logs").glob("probe-*.log"))
+    assert len(logs) == 1 and rt.info.driver in logs[0].read_text()
+
+
+def test_kernel_sources_are_found_beside_a_checkout_package(monkeypatch):
+    def missing(name):
+        raise ModuleNotFoundError("No module named 'clrefract.kernels_cl'")
+
+    monkeypatch.setattr(runtime.resources, "files", missing)
+    assert "probe_builtins" in runtime.kernel_source("probe.cl")
+    with pytest.raises(ClrefractError, match="no-such.cl"):
+        runtime.kernel_source("no-such.cl")
