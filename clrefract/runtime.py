@@ -11,6 +11,7 @@ import os
 import warnings
 from dataclasses import dataclass
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 
@@ -32,10 +33,17 @@ def _cl():
 
 
 def kernel_source(name: str) -> str:
-    """Text of one OpenCL source shipped in the package (`kernels_cl/` in the repository)."""
+    """Text of one OpenCL source shipped in the package (`kernels_cl/` in the repository).
+
+    Falls back to the repository's kernels_cl/ beside the package: an editable install maps
+    clrefract.kernels_cl to the checkout it was installed from, which misses sources that
+    exist only in another worktree run through PYTHONPATH."""
     try:
         return resources.files("clrefract.kernels_cl").joinpath(name).read_text()
     except (FileNotFoundError, ModuleNotFoundError) as exc:
+        local = Path(__file__).resolve().parent.parent / "kernels_cl" / name
+        if local.is_file():
+            return local.read_text()
         raise ClrefractError(f"kernel source {name!r} is missing from the package: {exc}") from None
 
 
