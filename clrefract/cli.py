@@ -185,9 +185,12 @@ def _field_for_render(spec: str, box):
 
 
 def _cmd_dataset_make(args) -> int:
+    from .family import parse_tilt
     from .synth import MakeOptions, make_dataset
 
     opt = MakeOptions(
+        eta=args.eta,
+        tilt=None if args.tilt is None else parse_tilt(args.tilt),
         views=args.views,
         res=args.res,
         test_every=args.test_every,
@@ -295,14 +298,29 @@ def build_parser() -> argparse.ArgumentParser:
     p = ds.add_parser("make", help="generate a synthetic benchmark scene")
     p.add_argument(
         "scene",
-        help="sphere, prism, drop (exact Snell ground truth), luneburg or plume (graded index)",
+        help="the paper's solids sphere, prism, drop (exact Snell ground truth); the family "
+        "shapes rounded-cube, cylinder, bowl, two-bodies, vase, random (exact Snell at a "
+        "signed-distance surface); luneburg or plume (graded index)",
     )
     p.add_argument("--out", required=True, help="dataset folder to write")
     p.add_argument("--views", type=int, default=100)
     p.add_argument("--res", type=int, default=128, help="image width and height")
     p.add_argument("--full", action="store_true", help="the full protocol: 100 views, 800x800")
     p.add_argument("--test-every", type=int, default=5, help="every k-th view is a test view")
-    p.add_argument("--seed", type=int, default=0, help="seed of the procedural environment")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the procedural environment (and of the shape, for `random`)",
+    )
+    p.add_argument(
+        "--eta", type=float, default=None, help="family shapes: glass index, 1.2 to 1.9 (1.5)"
+    )
+    p.add_argument(
+        "--tilt",
+        default=None,
+        help="family shapes: rotation a/b/c in degrees about x, y, z (default per shape)",
+    )
     p.add_argument("--envmap", help="your own equirectangular EXR instead")
     p.add_argument("--env-width", type=int, default=2048, help="procedural map width")
     p.add_argument("--device", default=None)

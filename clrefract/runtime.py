@@ -55,7 +55,11 @@ def _cl():
 
 
 def kernel_source(name: str) -> str:
-    """Text of one OpenCL source shipped in the package (`kernels_cl/` in the repository)."""
+    """Text of one OpenCL source shipped in the package (`kernels_cl/` in the repository).
+
+    Falls back to the repository's kernels_cl/ beside the package: an editable install maps
+    clrefract.kernels_cl to the checkout it was installed from, which misses sources that
+    exist only in another worktree run through PYTHONPATH."""
     try:
         return resources.files("clrefract.kernels_cl").joinpath(name).read_text()
     except (FileNotFoundError, ModuleNotFoundError) as exc:

@@ -302,6 +302,13 @@ def snell_numpy(solid, origins, dirs, max_events: int = 16, box: Box | None = No
 # ----------------------------------------------------------------------------- the kernel
 
 
+def check_max_events(max_events) -> None:
+    if isinstance(max_events, bool) or not isinstance(max_events, int | np.integer):
+        raise ClrefractError(f"max_events must be an integer, got {max_events!r}")
+    if not 1 <= int(max_events) <= 1_000_000:
+        raise ClrefractError(f"max_events must be between 1 and 1e6, got {max_events}")
+
+
 class SnellRenderer:
     """Exact Snell tracing through a Sphere, Prism or Drop on one OpenCL device.
 
@@ -318,10 +325,7 @@ class SnellRenderer:
         runtime: Runtime | None = None,
     ):
         _check_solid(solid)
-        if isinstance(max_events, bool) or not isinstance(max_events, int | np.integer):
-            raise ClrefractError(f"max_events must be an integer, got {max_events!r}")
-        if not 1 <= int(max_events) <= 1_000_000:
-            raise ClrefractError(f"max_events must be between 1 and 1e6, got {max_events}")
+        check_max_events(max_events)
         self.solid, self.box, self.max_events = solid, box or Box(), int(max_events)
         self.runtime = runtime or default_runtime()
         self.runtime.check_precision(precision)
@@ -336,6 +340,9 @@ class SnellRenderer:
             cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
             hostbuf=np.ascontiguousarray(solid_params(solid), dtype=self.dtype),
         )
+
+    def _inside(self, pts: np.ndarray) -> np.ndarray:
+        return inside_solid(self.solid, pts)
 
     def _columns(self, a, what: str) -> np.ndarray:
         a = np.asarray(a, dtype=np.float64)
@@ -352,7 +359,7 @@ class SnellRenderer:
             raise ClrefractError("ray origins and directions differ in number")
         if np.any(np.all(d == 0, axis=1)):
             raise ClrefractError("ray directions contain a zero vector")
-        inside = inside_solid(self.solid, o)
+        inside = self._inside(o)
         if inside.any():
             raise ClrefractError(
                 f"{int(inside.sum())} ray origin(s) lie inside the {self.solid.kind}: Snell "

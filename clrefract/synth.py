@@ -1,7 +1,9 @@
 """`clrefract dataset make`: the synthetic refractive benchmark (SPEC section 5).
 
 Solid objects (sphere, prism, drop) are rendered by exact Snell refraction at their analytic
-surfaces (clrefract.snell), never by the eikonal tracer that fitting uses; graded-index scenes
+surfaces (clrefract.snell), the family shapes (rounded cube, cylinder, bowl, two bodies, vase,
+random solids; clrefract.family) by exact Snell refraction at their signed-distance surfaces
+(clrefract.snell_sdf), never by the eikonal tracer that fitting uses; graded-index scenes
 (luneburg, plume) by the eikonal tracer in float64 with a fine step.
 """
 
@@ -17,6 +19,7 @@ from .cameras import fibonacci_sphere_cameras, save_transforms
 from .dataset import Scene, write_scene
 from .envmap import EnvMap
 from .errors import ClrefractError
+from .family import FAMILY, make_shape
 from .fields.analytic import Blobs, Drop, Luneburg, Prism, Sphere
 from .fields.base import Box
 from .imageio import atomic_path, write_exr_rgb, write_png_srgb
@@ -24,12 +27,19 @@ from .progress import Progress
 
 SOLIDS = ("sphere", "prism", "drop")
 GRADED = ("luneburg", "plume")
-SCENES = SOLIDS + GRADED
+SCENES = SOLIDS + GRADED + FAMILY
 
 
-def scene_object(name: str):
+def scene_object(name: str, eta: float | None = None, tilt=None, seed: int | None = None):
     """The analytic object of a benchmark scene (its interface width is only used to draw
-    the ground-truth eta volume; the images use the sharp surface)."""
+    the ground-truth eta volume; the images use the sharp surface). eta and tilt choose those
+    of a family shape, seed draws the `random` one; the paper's scenes are fixed."""
+    if name in FAMILY:
+        return make_shape(name, eta=eta, tilt=tilt, seed=seed)
+    if name in SCENES and (eta is not None or tilt is not None):
+        raise ClrefractError(
+            f"--eta and --tilt apply to the family shapes ({', '.join(FAMILY)}), not to {name}"
+        )
     if name == "sphere":
         return Sphere(radius=20.0, eta=1.5, width=0.8)
     if name == "prism":
@@ -62,10 +72,22 @@ class MakeOptions:
     fov_y: float = 30.0
     device: str | None = None
     volume_res: int = 128
+    eta: float | None = None  # family shapes: index of the glass (default 1.5)
+    tilt: tuple[float, float, float] | None = None  # family shapes: rotation, degrees
 
 
 def _ray_renderer(name: str, obj, box: Box, runtime):
     """A function (origins, dirs) -> (exit directions, ok mask)."""
+    if name in FAMILY:
+        from .snell_sdf import SdfSnellRenderer
+
+        sdf = SdfSnellRenderer(obj, box, precision="float64", runtime=runtime)
+
+        def trace(o, d):
+            r = sdf.trace(o, d)
+            return r.direction, (r.status == 0) | (r.status == 1)
+
+        return trace
     if name in SOLIDS:
         from .snell import SnellRenderer
 
@@ -124,9 +146,12 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def surface_mesh(obj, spacing: float = 0.4):
     """Marching cubes of the object's sharp surface: the signed distance for solids, the
-    level halfway between 1 and the peak index for graded scenes."""
+    level halfway between 1 and the peak index for graded scenes. Family shapes mesh
+    themselves (on their own bounding cube, vertices projected onto the zero set)."""
     from skimage.measure import marching_cubes
 
+    if hasattr(obj, "mesh"):
+        return obj.mesh()
     ext = 32.0
     n = int(2 * ext / spacing) + 1
     ax = np.linspace(-ext, ext, n)
@@ -147,7 +172,8 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) 
     from .runtime import Runtime
 
     t_start = time.perf_counter()
-    obj = scene_object(name) if obj is None else obj
+    if obj is None:
+        obj = scene_object(name, eta=opt.eta, tilt=opt.tilt, seed=opt.seed)
     box = Box()
     out = Path(out)
     (out / "train").mkdir(parents=True, exist_ok=True)
@@ -197,7 +223,9 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) 
         ground_truth={
             "eta_volume": "gt_eta.npz",
             "surface": "gt_surface.ply",
-            "renderer": "snell" if name in SOLIDS else "eikonal-f64",
+            "renderer": (
+                "snell" if name in SOLIDS else "snell-sdf" if name in FAMILY else "eikonal-f64"
+            ),
         },
         extra={
             "name": name,

@@ -18,6 +18,11 @@ def field_from_dict(d: dict) -> Field:
     kind = d.pop("kind", None)
     cls = ANALYTIC.get(kind)
     if cls is None:
+        # the family shapes (scene.json of their datasets): ground truth for eta metrics
+        from ..family import SHAPES
+
+        cls = SHAPES.get(kind)
+    if cls is None:
         raise ClrefractError(
             f"unknown field kind {kind!r}; analytic kinds are {', '.join(ANALYTIC)}, "
             "or give a voxel/hash-grid .npz file"
