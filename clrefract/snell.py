@@ -259,6 +259,12 @@ def snell_numpy(solid, origins, dirs, max_events: int = 16, box: Box | None = No
         def hit(o, d, inside):
             return _hit_drop_dense(o, d, inside, solid.R, solid.H)
 
+    return trace_events(origins, dirs, c, m, eta, eps, hit, max_events, box)
+
+
+def trace_events(origins, dirs, c, m, eta, eps, hit, max_events, box) -> SnellResult:
+    """The float64 per-ray event loop of the Snell references, in the solid's frame
+    (local = m (x - c)); hit(o, d, inside) -> (t, unit normal) or None."""
     n = len(origins)
     res = SnellResult(
         np.empty((n, 3)),

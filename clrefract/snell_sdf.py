@@ -22,11 +22,9 @@ from .snell import (
     TOL_REL,
     SnellRenderer,
     SnellResult,
-    _box_exit,
-    _refract_or_reflect,
     check_max_events,
+    trace_events,
 )
-from .tracer import Status
 
 CLIP_REL = 1.01  # rays march in a sphere this much larger than the bound (as the kernel)
 MAX_EVENTS = 32  # family shapes (bowl, two bodies) bounce more than the paper's solids
@@ -132,41 +130,8 @@ def snell_sdf_numpy(
     dirs = np.asarray(dirs, float).reshape(-1, 3)
     eta, rb = float(shape.eta), shape.bounding_radius
     eps, spacing = OFFSET_REL * rb, rb / 4000
-    n = len(origins)
-    res = SnellResult(
-        np.empty((n, 3)),
-        np.empty((n, 3)),
-        np.empty(n, np.int32),
-        np.empty(n, np.int32),
-        np.empty((n, 3)),
-    )
-    for i in range(n):
-        dw = dirs[i] / np.linalg.norm(dirs[i])
-        o, d = m @ (origins[i] - c), m @ dw
-        surf, inside, ev = o, False, 0
-        while True:
-            h = _hit_dense(shape, o, d, inside, spacing)
-            if h is None:
-                st = Status.NONFINITE if inside else (Status.MISSED if ev == 0 else Status.EXITED)
-                break
-            if ev >= max_events:
-                st = Status.TRAPPED
-                break
-            t, nrm = h
-            p = o + t * d
-            dn = _refract_or_reflect(d, nrm, inside, eta)
-            if not (np.all(np.isfinite(p)) and np.all(np.isfinite(dn))):
-                st = Status.NONFINITE
-                break
-            cn = float(dn @ nrm)
-            inside = cn < 0
-            o = p + (eps / max(abs(cn), 1e-3)) * dn
-            surf, d, ev = p, dn, ev + 1
-        if st == Status.MISSED:
-            res.direction[i], res.surface[i], res.position[i] = dw, origins[i], origins[i]
-        else:
-            dwo, sw = m.T @ d, c + m.T @ surf
-            res.direction[i], res.surface[i] = dwo, sw
-            res.position[i] = _box_exit(sw, dwo, box) if st == Status.EXITED else sw
-        res.status[i], res.events[i] = int(st), ev
-    return res
+
+    def hit(o, d, inside):
+        return _hit_dense(shape, o, d, inside, spacing)
+
+    return trace_events(origins, dirs, c, m, eta, eps, hit, max_events, box)
