@@ -80,6 +80,9 @@ class FitConfig:
     # forward states kept every this many steps for the backward pass (0: constant memory);
     # they stop the re-integrated ray drifting away through sharp interfaces
     backward_checkpoints: int = 8
+    # a ray's backward pass stops once its adjoint grew by this factor (0: never): rays that
+    # wander inside an object have exponentially growing, useless gradients
+    adjoint_growth_max: float = 100.0
     precision: str = "float32"
     loss: str = "srgb"
     queues: int = 1
@@ -249,6 +252,7 @@ class Fit:
             queues=self.cfg.queues,
             loss_space=self.cfg.loss,
             checkpoint_every=self.cfg.backward_checkpoints,
+            growth_max=self.cfg.adjoint_growth_max,
         )
         self._update_free()
 

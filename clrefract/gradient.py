@@ -29,6 +29,7 @@ class GradientResult:
     drift: np.ndarray  # (n,) mm the re-integrated ray strayed: at the entry point, or at the
     # forward checkpoints where it restarted
     steps: int
+    growth: np.ndarray | None = None  # (n,) max |mu| / |mu(T)| along each ray's backward pass
 
 
 def box_entry(box: Box, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
@@ -69,6 +70,7 @@ class GradientEngine:
         max_steps: int | None = None,
         loss_space: str = "srgb",
         checkpoint_every: int = 0,
+        growth_max: float = 0.0,
     ):
         self.runtime = runtime or Runtime(queues=queues)
         if len(self.runtime.queues) < queues:
@@ -90,6 +92,10 @@ class GradientEngine:
             raise ClrefractError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
         # 0: constant memory; C > 0: forward states kept every C steps bound the drift
         self.checkpoint_every = int(checkpoint_every)
+        if not (growth_max >= 0 and np.isfinite(growth_max)):
+            raise ClrefractError(f"growth_max must be >= 0 (0: off), got {growth_max}")
+        # a ray's backward pass stops once its adjoint grew by this factor (0: never)
+        self.growth_max = float(growth_max)
         self._ckpt: dict[int, tuple] = {}
         self._k_adjoint = self.tracer.kernels.adjoint_rays
         self.n_shared = int(getattr(field, "n_shared", 0))
@@ -164,7 +170,8 @@ class GradientEngine:
             grad = np.zeros(n_par + 1, tr.dtype)
             items = size // tr.lanes
             partial = np.zeros(max(items * self.n_shared, 1), tr.dtype)
-            back = [np.empty(size, tr.dtype) for _ in range(4)]  # x, y, z, checkpoint gap
+            # x, y, z, checkpoint gap, adjoint growth
+            back = [np.empty(size, tr.dtype) for _ in range(5)]
             args = [
                 tr.dtype(tr.step),
                 *last,
@@ -178,12 +185,15 @@ class GradientEngine:
                 np.int32(self.checkpoint_every),
                 ckpt,
                 Out(back[3]),
+                tr.dtype(self.growth_max),
+                Out(back[4]),
             ]
             tr._enqueue(self._k_adjoint, items, args, q, local=_adjoint_group(items, tr.lanes))
             jobs.append((idx, grad, partial, back, items))
         total = np.zeros(n_par)
         back_pos = np.empty((n, 3))
         gap = np.empty(n)
+        growth = np.empty(n)
         for q, (idx, grad, partial, back, items) in zip(self.queues, jobs):
             q.finish()
             total += grad[:n_par]
@@ -194,9 +204,11 @@ class GradientEngine:
                 )
             back_pos[idx] = np.stack(back[:3], axis=1)[: len(idx)]
             gap[idx] = back[3][: len(idx)]
+            growth[idx] = back[4][: len(idx)]
         entry = box_entry(self.box, origins, dirs)
         drift = np.maximum(np.linalg.norm(back_pos - entry, axis=1), gap)
         drift = np.where(exited, drift, 0.0)
         if not np.isfinite(loss) or not np.all(np.isfinite(total)):
             raise FloatingPointError("non-finite loss or gradient")
-        return GradientResult(loss, total, rad, status, drift, steps)
+        growth = np.where(exited, growth, 1.0)
+        return GradientResult(loss, total, rad, status, drift, steps, growth)

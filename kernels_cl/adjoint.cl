@@ -15,7 +15,14 @@
  * through sharp interfaces the drift grows fast. With ckpt_every = C > 0 the ray's (x, v) is
  * reset to the forward pass's checkpoint every C steps: drift stays that of C steps, for
  * memory O(max_steps / C) per ray. Lanes are aligned on the forward step index (a lane with
- * fewer steps starts later), so that every lane meets its checkpoints together. */
+ * fewer steps starts later), so that every lane meets its checkpoints together.
+ *
+ * A ray that wanders inside an object (repeated reflection off a smooth interface) has an
+ * adjoint that grows exponentially backwards: its derivative is exact only for perturbations
+ * far below any useful step, and one such ray outweighs thousands of others. With
+ * growth_max = G > 0 a ray's backward pass stops once |mu| exceeds G |mu(T)| (a truncated
+ * adjoint); its contributions nearer the exit are kept. growth returns max |mu| / |mu(T)|
+ * along the integrated part of each ray. */
 
 /* Fields accumulate in private memory what they can (a voxel grid: the cell a ray is
  * in; shared MLP weights: the whole ray) and reach global memory when that changes or at
@@ -51,7 +58,8 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
                            __global const REAL *muz, __global REAL *grad,
                            __global REAL *partial, __global REAL *bx, __global REAL *by,
                            __global REAL *bz, const int max_steps, const int ckpt_every,
-                           __global const REAL *ckpt, __global REAL *snap) {
+                           __global const REAL *ckpt, __global REAL *snap, const REAL growth_max,
+                           __global REAL *growth) {
     const size_t i = get_global_id(0);
     const size_t col = get_global_size(0) * LANES;
     /* y = (x, mu), y' = (v, nu) with nu = -lambda; the step k = -h runs backwards */
@@ -62,10 +70,13 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
     realv n = TO_REALV(VLOAD(i, steps));
     FIELD_ACC_DECL
     realv worst = RV(0); /* largest distance from a checkpoint when the ray reached it */
+    const realv m0 = fmax(mx * mx + my * my + mz * mz, RV(1e-30));
+    const realv g2 = RV(growth_max * growth_max);
+    realv grown = RV(1), alive = RV(1);
     const REAL k = -h, k2 = (REAL)0.5 * k, k8 = (REAL)0.125 * k, s6 = (REAL)1 / (REAL)6;
     /* s: forward index of the state the step starts from */
     for (int s = max_steps; s > 0; --s) {
-        maskv active = RV(s) <= n;
+        maskv active = RV(s) <= n && alive > RV(0);
         if (!ANY(active))
             continue;
         realv w = SEL(RV(0), RV(h * s6), active);
@@ -90,6 +101,10 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
         ADV(x, vx, ax, bx_, cx); ADV(y, vy, ay, by_, cy); ADV(z, vz, az, bz_, cz);
         ADV(mx, nx, amx, bmx, cmx); ADV(my, ny, amy, bmy, cmy); ADV(mz, nz, amz, bmz, cmz);
 #undef ADV
+        realv m2 = (mx * mx + my * my + mz * mz) / m0;
+        grown = SEL(grown, fmax(grown, m2), active);
+        if (growth_max > (REAL)0)
+            alive = SEL(alive, RV(0), active && m2 > g2);
         if (ckpt_every > 0 && (s - 1) % ckpt_every == 0 && s > 1) {
             __global const REAL *c = ckpt + (size_t)((s - 1) / ckpt_every - 1) * 6 * col;
             realv cx_ = VLOAD(i, c), cy_ = VLOAD(i, c + col), cz_ = VLOAD(i, c + 2 * col);
@@ -104,5 +119,6 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
         }
     }
     VSTORE(x, i, bx); VSTORE(y, i, by); VSTORE(z, i, bz); VSTORE(worst, i, snap);
+    VSTORE(sqrt(grown), i, growth);
     FIELD_ACC_FLUSH(grad, partial, i);
 }
