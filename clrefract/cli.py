@@ -232,6 +232,8 @@ def _cmd_fit(args) -> int:
             "lr_table",
             "lr_mlp",
             "lr_phi",
+            "lr_index",
+            "adjoint_growth_max",
             "width",
             "reg",
             "step",
@@ -351,8 +353,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=int)
     p.add_argument("--batch", type=int, help="rays per iteration")
     p.add_argument("--width", type=float, help="level-set interface width, mm")
-    p.add_argument("--lr", type=float, help="learning rate of voxel values (level set: index)")
+    p.add_argument("--lr", type=float, help="learning rate of voxel values")
     p.add_argument("--lr-phi", type=float, help="learning rate of the level set's distance, mm")
+    p.add_argument("--lr-index", type=float, help="learning rate of the level set's index")
+    p.add_argument(
+        "--growth-max",
+        dest="adjoint_growth_max",
+        type=float,
+        help="stop a ray's backward pass once its adjoint grew by this factor (0: never)",
+    )
     p.add_argument("--lr-table", type=float, help="learning rate of hash tables")
     p.add_argument("--lr-mlp", type=float, help="learning rate of the MLP")
     p.add_argument("--reg", type=float, help="smoothness regulariser weight")

@@ -178,6 +178,11 @@ def write_fit_report(fit) -> dict:
         "best_val_loss": float(fit.best[0]) if np.isfinite(fit.best[0]) else None,
         **score_field(fit, out_dir=out / "test"),
     }
+    start = out / "start.json"
+    if start.is_file():  # runs made before start.json existed have none
+        result["start"] = json.loads(start.read_text())
+        if result["start"].get("test_psnr") is not None and result["test_psnr"] is not None:
+            result["psnr_gain_over_start"] = result["test_psnr"] - result["start"]["test_psnr"]
     with atomic_path(out / "results.json", suffix=".json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))
     return result

@@ -58,8 +58,8 @@ def bench_scene(scene: str, args) -> dict:
     run = Path(args.runs) / scene
     shutil.rmtree(run, ignore_errors=True)
     t0 = time.perf_counter()
-    fit = prepare_fit(data, run, cfg)
-    row["start"] = {"seconds": time.perf_counter() - t0, **score_field(fit)}
+    fit = prepare_fit(data, run, cfg)  # scores its start into start.json
+    row["start"] = json.loads((run / "start.json").read_text())
     row["empty"] = score_field(fit, VoxelGrid(np.ones((8, 8, 8)), fit.box))
     truth = scene_truth(fit.ds)
     if cfg.field == "levelset":

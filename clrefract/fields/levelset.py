@@ -140,11 +140,11 @@ class LevelSetField(Field):
         self.phi = np.array(params[:-1], np.float64).reshape(self.phi.shape)
         self.eta = eta
 
-    def param_groups(self, lr: float = 5e-3, lr_phi: float = 0.02, **_) -> list:
+    def param_groups(self, lr_phi: float = 0.005, lr_index: float = 1.25e-3, **_) -> list:
         from ..adam import ParamGroup
 
         n = self.phi.size
-        return [ParamGroup("phi", 0, n, lr_phi), ParamGroup("eta", n, n + 1, lr)]
+        return [ParamGroup("phi", 0, n, lr_phi), ParamGroup("eta", n, n + 1, lr_index)]
 
     def regularizer(self, params: np.ndarray) -> tuple[float, np.ndarray]:
         """Eikonal penalty mean((|grad phi|^2 - 1)^2) over the interior nodes (central
