@@ -49,10 +49,10 @@ class FitConfig:
     interp: str = "bspline"  # C2 tricubic B-spline; "smoothstep" (C1) or "trilinear"
     # level set: one index inside a surface ramped across `width` mm
     width: float = 1.0
-    # Adam moves every band node by about its rate each step: at 0.02 mm the level-set start
-    # got worse under any gradient; 0.005 mm and an index rate of 1.25e-3 descend
-    lr_phi: float = 0.005  # mm per step, the distance values
-    lr_index: float = 1.25e-3  # the level set's index
+    # Adam moves every band node by about its rate each step: from the level-set start on
+    # 128 x 128 views, 0.02 and 0.005 mm climbed, 0.00125 mm (index 3e-4) descended
+    lr_phi: float = 0.00125  # mm per step, the distance values
+    lr_index: float = 3e-4  # the level set's index
     # hash grid
     levels: int = 8
     features: int = 2
@@ -352,8 +352,8 @@ class Fit:
         if self.cfg.field == "levelset":
             best = (np.inf, 1.0, 0.0, 0.0)
             for sigma in hull.width * np.array([0.0, 1.0, 2.0, 3.0, 4.0, 6.0]):
-                # the first smoothing searches the whole index range, the others near its pick
-                start = best[1] if np.isfinite(best[0]) else None
+                # the first smoothing searches index and offset jointly, the others near its pick
+                start = best[1:3] if np.isfinite(best[0]) else None
                 trial = self._search_levelset(hull.smoothed(sigma), idx, etas, start)
                 if trial[0] < best[0]:
                     best = (*trial, float(sigma))
@@ -401,15 +401,22 @@ class Fit:
         loss, eta = min([(loss, eta), *cands])
         return loss, eta, offset
 
-    def _search_levelset(self, hull, idx, etas, eta=None):
-        """Alternating line searches, coarse to fine: index, offset, index, offset, index.
-        A sharp surface is worth placing to a fraction of a cell."""
+    def _search_levelset(self, hull, idx, etas, start=None):
+        """A joint coarse search over index and offset (a hull too big where the views cannot
+        see in, searched at offset 0, looks like a lower index), then alternating line
+        searches, coarse to fine: offset, index, offset, index. A sharp surface is worth
+        placing to a fraction of a cell. `start` = (index, offset) skips the coarse grid."""
         step = etas[1] - etas[0]
-        offset = 0.0
-        if eta is None:
-            loss, eta = min((self._loss_of(hull, idx, e, 0.0), float(e)) for e in etas[1:])
+        if start is None:
+            offsets = hull.width * np.array([-6.0, -4.0, -3.0, -2.0, -1.0, 0.0, 1.0])
+            loss, eta, offset = min(
+                (self._loss_of(hull, idx, float(e), float(o)), float(e), float(o))
+                for o in offsets
+                for e in etas[1:]
+            )
         else:
-            loss = self._loss_of(hull, idx, eta, 0.0)
+            eta, offset = start
+            loss = self._loss_of(hull, idx, eta, offset)
         for de, do in [(0, 0.5), (0.25, 0), (0, 0.125), (0.08, 0)]:
             if do:
                 cands = offset + hull.width * do * np.array([-3.0, -2.0, -1.0, 1.0, 2.0, 3.0])

@@ -338,7 +338,9 @@ class SnellRenderer:
         self.precision = precision
         self.dtype = self.runtime.real_dtype(precision)
         defines = {f"SOLID_{solid.kind.upper()}": 1, **self.box.defines()}
-        self.kernels = self.runtime.build(["common.h", "snell.cl"], defines, precision)
+        self.kernels = self.runtime.build(
+            ["common.h", "snell_common.h", "snell.cl", "snell_trace.cl"], defines, precision
+        )
         self._kernel = self.kernels.snell_trace
         cl = self.runtime.cl
         self._sp = cl.Buffer(

@@ -62,8 +62,10 @@ class SdfSnellRenderer(SnellRenderer):
         self.precision = precision
         self.dtype = self.runtime.real_dtype(precision)
         defines = {**shape.kernel_defines(), **self.box.defines()}
-        self.kernels = self.runtime.build(["common.h", "snell_sdf.cl"], defines, precision)
-        self._kernel = self.kernels.snell_sdf_trace
+        self.kernels = self.runtime.build(
+            ["common.h", "snell_common.h", "snell_sdf.cl", "snell_trace.cl"], defines, precision
+        )
+        self._kernel = self.kernels.snell_trace
         cl = self.runtime.cl
         self._sp = cl.Buffer(
             self.runtime.context,

@@ -13,8 +13,6 @@
  * Everything below works in the solid's local frame: l = M (x - centre).
  */
 
-typedef CAT(REAL, 3) real3;
-
 #ifdef REAL_IS_DOUBLE
 #define OFFSET_REL 1e-9  /* origin offset off the surface after an event, times the size */
 #define TOL_REL 1e-12    /* bisection tolerance on the ray parameter, times the size */
@@ -24,16 +22,6 @@ typedef CAT(REAL, 3) real3;
 #endif
 #define MAX_BISECT 100
 #define BIG ((REAL)1e30)
-
-inline real3 r3(REAL x, REAL y, REAL z) {
-    real3 v;
-    v.x = x;
-    v.y = y;
-    v.z = z;
-    return v;
-}
-
-inline real3 unit3(real3 v) { return v / sqrt(dot(v, v)); }
 
 /* ---------------------------------------------------------------- sphere (centre 0) */
 inline int hit_sphere(real3 o, real3 d, int inside, REAL R, REAL *t, real3 *n) {
@@ -236,24 +224,6 @@ inline int hit_drop(real3 o, real3 d, int inside, REAL R, REAL H, REAL *t, real3
 }
 
 /* ------------------------------------------------------------------------- the event */
-/* Snell refraction with relative index eta_i / eta_t, or mirror reflection past the critical
- * angle. n is the outward normal; inside says which medium the ray travels in. */
-inline real3 refract_or_reflect(real3 d, real3 n, int inside, REAL eta, int *tir) {
-    REAL cd = dot(d, n);
-    real3 m = cd < (REAL)0 ? n : -n; /* faces the incoming ray */
-    REAL ci = fabs(cd);
-    REAL r = inside ? eta : (REAL)1 / eta;
-    REAL k = (REAL)1 - r * r * ((REAL)1 - ci * ci);
-    if (k < (REAL)0) {
-        *tir = 1;
-        return unit3(d + (REAL)2 * ci * m);
-    }
-    *tir = 0;
-    return unit3(r * d + (r * ci - sqrt(k)) * m);
-}
-
-inline int finite3(real3 v) { return isfinite(v.x) && isfinite(v.y) && isfinite(v.z); }
-
 inline int hit_solid(__global const REAL *sp, real3 o, real3 d, int inside, REAL *t, real3 *n) {
 #if defined(SOLID_SPHERE)
     return hit_sphere(o, d, inside, sp[12], t, n);
@@ -274,92 +244,4 @@ inline REAL solid_size(__global const REAL *sp) {
 #endif
 }
 
-/* Distance along d from p to the box wall it leaves through (0 when p is outside). */
-inline REAL box_exit_distance(real3 p, real3 d) {
-    REAL lo[3] = {(REAL)BOX_LO_X, (REAL)BOX_LO_Y, (REAL)BOX_LO_Z};
-    REAL hi[3] = {(REAL)BOX_HI_X, (REAL)BOX_HI_Y, (REAL)BOX_HI_Z};
-    REAL pc[3] = {p.x, p.y, p.z}, dc[3] = {d.x, d.y, d.z};
-    REAL t = BIG;
-    for (int j = 0; j < 3; j++) {
-        if (dc[j] > (REAL)0) t = fmin(t, (hi[j] - pc[j]) / dc[j]);
-        else if (dc[j] < (REAL)0) t = fmin(t, (lo[j] - pc[j]) / dc[j]);
-    }
-    return fmax(t, (REAL)0);
-}
-
-/* Status: ST_EXITED (left the object; position on the box), ST_MISSED (never hit it;
- * position = origin), ST_TRAPPED (max_events reached with another event due; position = last
- * event point), ST_NONFINITE (non-finite state, or no way out found from inside). surface:
- * the last event point (the origin for missed rays). */
-__kernel void snell_trace(__global const REAL *restrict sp, const int max_events, const int n,
-                          __global const REAL *ox, __global const REAL *oy,
-                          __global const REAL *oz, __global const REAL *dx,
-                          __global const REAL *dy, __global const REAL *dz, __global REAL *px,
-                          __global REAL *py, __global REAL *pz, __global REAL *vx,
-                          __global REAL *vy, __global REAL *vz, __global REAL *sx,
-                          __global REAL *sy, __global REAL *sz, __global int *status,
-                          __global int *events) {
-    const int i = get_global_id(0);
-    if (i >= n) return;
-    const real3 c = r3(sp[0], sp[1], sp[2]);
-    const real3 m0 = r3(sp[3], sp[4], sp[5]), m1 = r3(sp[6], sp[7], sp[8]),
-                m2 = r3(sp[9], sp[10], sp[11]);
-    const REAL eta = sp[14];
-    const REAL eps = OFFSET_REL * solid_size(sp);
-
-    const real3 ow = r3(ox[i], oy[i], oz[i]);
-    const real3 dw = unit3(r3(dx[i], dy[i], dz[i]));
-    real3 rel = ow - c;
-    real3 o = r3(dot(m0, rel), dot(m1, rel), dot(m2, rel));
-    real3 d = r3(dot(m0, dw), dot(m1, dw), dot(m2, dw));
-    real3 surf = o;
-    int inside = 0, ev = 0, st;
-    for (;;) {
-        REAL t;
-        real3 nrm;
-        if (!hit_solid(sp, o, d, inside, &t, &nrm)) {
-            st = inside ? ST_NONFINITE : (ev == 0 ? ST_MISSED : ST_EXITED);
-            break;
-        }
-        if (ev >= max_events) {
-            st = ST_TRAPPED;
-            break;
-        }
-        real3 p = o + t * d;
-        int tir;
-        real3 dn = refract_or_reflect(d, nrm, inside, eta, &tir);
-        if (!finite3(p) || !finite3(dn) || !finite3(nrm)) {
-            st = ST_NONFINITE;
-            break;
-        }
-        REAL cn = dot(dn, nrm);
-        inside = cn < (REAL)0;
-        /* step off the surface to the new side along the new ray (the line is unchanged):
-         * a distance eps from the surface, at most 1000 eps along the ray */
-        o = p + (eps / fmax(fabs(cn), (REAL)1e-3)) * dn;
-        surf = p;
-        d = dn;
-        ev++;
-    }
-    /* back to the world frame: x = c + M^T l */
-    real3 dwo = d.x * m0 + d.y * m1 + d.z * m2;
-    real3 sw = c + surf.x * m0 + surf.y * m1 + surf.z * m2;
-    real3 pos = sw;
-    if (st == ST_MISSED) {
-        dwo = dw;
-        sw = pos = ow;
-    } else if (st == ST_EXITED) {
-        pos = sw + box_exit_distance(sw, dwo) * dwo;
-    }
-    px[i] = pos.x;
-    py[i] = pos.y;
-    pz[i] = pos.z;
-    vx[i] = dwo.x;
-    vy[i] = dwo.y;
-    vz[i] = dwo.z;
-    sx[i] = sw.x;
-    sy[i] = sw.y;
-    sz[i] = sw.z;
-    status[i] = st;
-    events[i] = ev;
-}
+inline REAL solid_eta(__global const REAL *sp) { return sp[14]; }

@@ -14,8 +14,6 @@
  * centre, sp[15..] the shape's own parameters (q below). Work is in the local frame.
  */
 
-typedef CAT(REAL, 3) real3;
-
 #ifdef REAL_IS_DOUBLE
 #define OFFSET_REL 1e-9   /* origin offset off the surface after an event, times Rb */
 #define TOL_REL 1e-12     /* bisection tolerance on the ray parameter, times Rb */
@@ -30,16 +28,6 @@ typedef CAT(REAL, 3) real3;
 #define CLIP_REL 1.01     /* radius of the marching sphere, times Rb (snell_sdf.py) */
 #define MAX_MARCH 20000
 #define MAX_BISECT 200
-
-inline real3 r3(REAL x, REAL y, REAL z) {
-    real3 v;
-    v.x = x;
-    v.y = y;
-    v.z = z;
-    return v;
-}
-
-inline real3 unit3(real3 v) { return v / sqrt(dot(v, v)); }
 
 inline REAL norm3(real3 v) { return sqrt(dot(v, v)); }
 
@@ -147,106 +135,8 @@ inline int hit_sdf(__global const REAL *sp, real3 o, real3 d, int inside, REAL *
     return 1;
 }
 
-/* As in snell.cl: Snell refraction with relative index eta_i / eta_t, or mirror reflection
- * past the critical angle; n the outward normal, inside the medium of the incoming ray. */
-inline real3 refract_or_reflect(real3 d, real3 n, int inside, REAL eta) {
-    REAL cd = dot(d, n);
-    real3 m = cd < (REAL)0 ? n : -n;
-    REAL ci = fabs(cd);
-    REAL r = inside ? eta : (REAL)1 / eta;
-    REAL k = (REAL)1 - r * r * ((REAL)1 - ci * ci);
-    if (k < (REAL)0) return unit3(d + (REAL)2 * ci * m);
-    return unit3(r * d + (r * ci - sqrt(k)) * m);
+inline int hit_solid(__global const REAL *sp, real3 o, real3 d, int inside, REAL *t, real3 *n) {
+    return hit_sdf(sp, o, d, inside, t, n);
 }
-
-inline int finite3(real3 v) { return isfinite(v.x) && isfinite(v.y) && isfinite(v.z); }
-
-inline REAL box_exit_distance(real3 p, real3 d) {
-    REAL lo[3] = {(REAL)BOX_LO_X, (REAL)BOX_LO_Y, (REAL)BOX_LO_Z};
-    REAL hi[3] = {(REAL)BOX_HI_X, (REAL)BOX_HI_Y, (REAL)BOX_HI_Z};
-    REAL pc[3] = {p.x, p.y, p.z}, dc[3] = {d.x, d.y, d.z};
-    REAL t = (REAL)1e30;
-    for (int j = 0; j < 3; j++) {
-        if (dc[j] > (REAL)0) t = fmin(t, (hi[j] - pc[j]) / dc[j]);
-        else if (dc[j] < (REAL)0) t = fmin(t, (lo[j] - pc[j]) / dc[j]);
-    }
-    return fmax(t, (REAL)0);
-}
-
-/* Outputs and status codes as snell_trace (snell.cl): ST_EXITED, ST_MISSED, ST_TRAPPED (event
- * cap reached with another event due), ST_NONFINITE (non-finite state, no way out found from
- * inside, or the marching cap). */
-__kernel void snell_sdf_trace(__global const REAL *restrict sp, const int max_events,
-                              const int n, __global const REAL *ox, __global const REAL *oy,
-                              __global const REAL *oz, __global const REAL *dx,
-                              __global const REAL *dy, __global const REAL *dz,
-                              __global REAL *px, __global REAL *py, __global REAL *pz,
-                              __global REAL *vx, __global REAL *vy, __global REAL *vz,
-                              __global REAL *sx, __global REAL *sy, __global REAL *sz,
-                              __global int *status, __global int *events) {
-    const int i = get_global_id(0);
-    if (i >= n) return;
-    const real3 c = r3(sp[0], sp[1], sp[2]);
-    const real3 m0 = r3(sp[3], sp[4], sp[5]), m1 = r3(sp[6], sp[7], sp[8]),
-                m2 = r3(sp[9], sp[10], sp[11]);
-    const REAL eta = sp[12];
-    const REAL eps = OFFSET_REL * sp[14];
-
-    const real3 ow = r3(ox[i], oy[i], oz[i]);
-    const real3 dw = unit3(r3(dx[i], dy[i], dz[i]));
-    real3 rel = ow - c;
-    real3 o = r3(dot(m0, rel), dot(m1, rel), dot(m2, rel));
-    real3 d = r3(dot(m0, dw), dot(m1, dw), dot(m2, dw));
-    real3 surf = o;
-    int inside = 0, ev = 0, st;
-    for (;;) {
-        REAL t;
-        real3 nrm;
-        int h = hit_sdf(sp, o, d, inside, &t, &nrm);
-        if (h < 0) {
-            st = ST_NONFINITE;
-            break;
-        }
-        if (h == 0) {
-            st = inside ? ST_NONFINITE : (ev == 0 ? ST_MISSED : ST_EXITED);
-            break;
-        }
-        if (ev >= max_events) {
-            st = ST_TRAPPED;
-            break;
-        }
-        real3 p = o + t * d;
-        real3 dn = refract_or_reflect(d, nrm, inside, eta);
-        if (!finite3(p) || !finite3(dn) || !finite3(nrm)) {
-            st = ST_NONFINITE;
-            break;
-        }
-        REAL cn = dot(dn, nrm);
-        inside = cn < (REAL)0;
-        /* a distance eps off the surface on the new side, at most 1000 eps along the ray */
-        o = p + (eps / fmax(fabs(cn), (REAL)1e-3)) * dn;
-        surf = p;
-        d = dn;
-        ev++;
-    }
-    real3 dwo = d.x * m0 + d.y * m1 + d.z * m2;
-    real3 sw = c + surf.x * m0 + surf.y * m1 + surf.z * m2;
-    real3 pos = sw;
-    if (st == ST_MISSED) {
-        dwo = dw;
-        sw = pos = ow;
-    } else if (st == ST_EXITED) {
-        pos = sw + box_exit_distance(sw, dwo) * dwo;
-    }
-    px[i] = pos.x;
-    py[i] = pos.y;
-    pz[i] = pos.z;
-    vx[i] = dwo.x;
-    vy[i] = dwo.y;
-    vz[i] = dwo.z;
-    sx[i] = sw.x;
-    sy[i] = sw.y;
-    sz[i] = sw.z;
-    status[i] = st;
-    events[i] = ev;
-}
+inline REAL solid_size(__global const REAL *sp) { return sp[14]; }
+inline REAL solid_eta(__global const REAL *sp) { return sp[12]; }

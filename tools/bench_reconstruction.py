@@ -1,6 +1,7 @@
-"""Reconstruction benchmark: fit the sphere, the prism and the drop on the quick protocol
-(100 views, 80 for training, 20 held out) and score the test views, beside reference points
-measured with the same renderer and metrics:
+"""Reconstruction benchmark: fit the sphere, the prism and the drop (or, with --suite family,
+the glass solids of `dataset make`) on the quick protocol (100 views, 80 for training, 20 held
+out) and score the test views, beside reference points measured with the same renderer and
+metrics:
 
 - empty: eta = 1 everywhere (what doing nothing scores);
 - start: the fit's starting point (the visual hull filled by line search, no gradient step),
@@ -9,7 +10,10 @@ measured with the same renderer and metrics:
 - ceiling: the ground truth on the same grid (the best this grid can do): its eta sampled at
   the nodes of a voxel grid, or its signed distance at the nodes of a level set.
 
-    python tools/bench_reconstruction.py [--field levelset|voxel] [--scenes sphere,prism,drop]
+For level sets the index column gives the start's and the fit's index beside the truth's.
+
+    python tools/bench_reconstruction.py [--field levelset|voxel] [--suite paper|family]
+        [--scenes sphere,prism,drop]
         [--res 128] [--grid 64] [--iterations 100] [--json bench_results/reconstruction.json]
 """
 
@@ -76,12 +80,23 @@ def bench_scene(scene: str, args) -> dict:
     t0 = time.perf_counter()
     res = fit.run()
     row["fit"] = {**res, "seconds": row["start"]["seconds"] + time.perf_counter() - t0}
+    if cfg.field == "levelset":  # one index inside the surface: how far from the truth
+        row["truth_index"] = float(truth.eta)
+        init = json.loads((run / "init.json").read_text()) if (run / "init.json").is_file() else {}
+        row["start"]["index"] = init.get("eta")
+        row["fit"]["index"] = float(fit.params[-1])
     return row
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="sphere,prism,drop")
+    ap.add_argument("--scenes", default="", help="comma-separated (default: the suite's)")
+    ap.add_argument(
+        "--suite",
+        default="paper",
+        choices=["paper", "family"],
+        help="paper: sphere, prism, drop; family: the glass solids of `dataset make`",
+    )
     ap.add_argument("--res", type=int, default=128, help="image size of the views")
     ap.add_argument("--grid", type=int, default=64, help="grid resolution (voxel or level set)")
     ap.add_argument("--field", default="levelset", choices=["levelset", "voxel"])
@@ -96,12 +111,16 @@ def main() -> None:
     ap.add_argument("--json", default="bench_results/reconstruction.json")
     args = ap.parse_args()
 
+    from clrefract.family import FAMILY
+
+    suite = {"paper": ("sphere", "prism", "drop"), "family": FAMILY}[args.suite]
     rows = []
-    for scene in args.scenes.split(","):
+    for scene in args.scenes.split(",") if args.scenes else suite:
         print(f"== {scene}", file=sys.stderr)
         rows.append(bench_scene(scene.strip(), args))
     head = (
-        f"{'scene':8} {'model':8} {'PSNR':>6} {'SSIM':>6} {'D_C mm':>7} {'eta RMSE':>9} {'time':>7}"
+        f"{'scene':12} {'model':8} {'PSNR':>6} {'SSIM':>6} {'D_C mm':>7} {'eta RMSE':>9} "
+        f"{'index':>6} {'time':>7}"
     )
     print(head)
     print("-" * len(head))
@@ -110,10 +129,11 @@ def main() -> None:
             m = r[model]
             dc = m.get("chamfer_mm")
             t = m.get("seconds")
+            n = r.get("truth_index") if model == "ceiling" else m.get("index")
             print(
-                f"{r['scene']:8} {model:8} {m['test_psnr']:6.2f} {m['test_ssim']:6.3f} "
+                f"{r['scene']:12} {model:8} {m['test_psnr']:6.2f} {m['test_ssim']:6.3f} "
                 f"{'-' if dc is None else f'{dc:.2f}':>7} {m.get('eta_rmse', float('nan')):9.4f} "
-                f"{'' if t is None else f'{t:6.0f}s':>7}"
+                f"{'-' if n is None else f'{n:.3f}':>6} {'' if t is None else f'{t:6.0f}s':>7}"
             )
     for r in rows:
         for m in r.values():

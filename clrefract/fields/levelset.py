@@ -140,7 +140,7 @@ class LevelSetField(Field):
         self.phi = np.array(params[:-1], np.float64).reshape(self.phi.shape)
         self.eta = eta
 
-    def param_groups(self, lr_phi: float = 0.005, lr_index: float = 1.25e-3, **_) -> list:
+    def param_groups(self, lr_phi: float = 0.00125, lr_index: float = 3e-4, **_) -> list:
         from ..adam import ParamGroup
 
         n = self.phi.size
