@@ -21,6 +21,8 @@ from .envmap import EnvMap
 from .fields.base import Box
 from .loss import srgb
 
+SOLIDITY = 0.5  # below this fraction of its convex hull, a mask is edge arcs
+
 
 @dataclass
 class Hull:
@@ -62,12 +64,25 @@ class Hull:
 def refraction_mask(
     cam: Camera, image: np.ndarray, env: EnvMap, threshold: float = 0.05
 ) -> np.ndarray:
-    """(H, W) bool: pixels whose photograph differs from the environment seen straight."""
+    """(H, W) bool: pixels whose photograph differs from the environment seen straight, with
+    the holes inside the silhouette filled."""
     _, d = cam.rays()
     straight = env.lookup(d).reshape(cam.height, cam.width, 3)
     diff = np.abs(srgb(image)[0] - srgb(straight)[0]).max(axis=-1)
-    mask = ndimage.median_filter(diff, size=3) > threshold
-    return ndimage.binary_closing(mask, iterations=2)
+    mask = ndimage.binary_closing(ndimage.median_filter(diff, size=3) > threshold, iterations=2)
+    mask = ndimage.binary_fill_holes(mask)
+    # a ray through two parallel faces leaves parallel to how it came, shifted: with the
+    # environment at infinity it looks like air, so a flat-faced object (a cube, a prism)
+    # seen face-on leaves only arcs along its edges. A mask that fills less than half of its
+    # convex hull is taken to be such arcs, and replaced by that hull: an over-estimate
+    # (the fit's offset search and gradient shrink it), never a hole in the object.
+    if mask.sum() >= 8:
+        from skimage.morphology import convex_hull_image
+
+        hull = convex_hull_image(mask)
+        if mask.sum() < SOLIDITY * hull.sum():
+            mask = hull
+    return mask
 
 
 def mask_distance(mask: np.ndarray) -> np.ndarray:
