@@ -331,22 +331,32 @@ class SnellRenderer:
         runtime: Runtime | None = None,
     ):
         _check_solid(solid)
+        self._setup(solid, box, precision, max_events, runtime)
+        self._build("snell.cl", {f"SOLID_{solid.kind.upper()}": 1}, solid_params(solid))
+
+    def _setup(self, solid, box, precision, max_events, runtime) -> None:
         check_max_events(max_events)
         self.solid, self.box, self.max_events = solid, box or Box(), int(max_events)
         self.runtime = runtime or default_runtime()
+        if precision is None:  # float64 where the device has it
+            precision = "float64" if self.runtime.info.fp64 else "float32"
         self.runtime.check_precision(precision)
         self.precision = precision
         self.dtype = self.runtime.real_dtype(precision)
-        defines = {f"SOLID_{solid.kind.upper()}": 1, **self.box.defines()}
+
+    def _build(self, shape_source: str, defines: dict, params: np.ndarray) -> None:
+        """The shared event-loop kernel (snell_trace.cl) over one shape's hit function."""
         self.kernels = self.runtime.build(
-            ["common.h", "snell_common.h", "snell.cl", "snell_trace.cl"], defines, precision
+            ["common.h", "snell_common.h", shape_source, "snell_trace.cl"],
+            {**defines, **self.box.defines()},
+            self.precision,
         )
         self._kernel = self.kernels.snell_trace
         cl = self.runtime.cl
         self._sp = cl.Buffer(
             self.runtime.context,
             cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-            hostbuf=np.ascontiguousarray(solid_params(solid), dtype=self.dtype),
+            hostbuf=np.ascontiguousarray(params, dtype=self.dtype),
         )
 
     def _inside(self, pts: np.ndarray) -> np.ndarray:

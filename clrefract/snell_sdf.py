@@ -16,13 +16,12 @@ import numpy as np
 from .errors import ClrefractError
 from .family import GRAD_REL, SdfSolid
 from .fields.base import Box
-from .runtime import Runtime, default_runtime
+from .runtime import Runtime
 from .snell import (
     OFFSET_REL,
     TOL_REL,
     SnellRenderer,
     SnellResult,
-    check_max_events,
     trace_events,
 )
 
@@ -53,25 +52,8 @@ class SdfSnellRenderer(SnellRenderer):
         runtime: Runtime | None = None,
     ):
         _check_shape(shape)
-        check_max_events(max_events)
-        self.solid, self.box, self.max_events = shape, box or Box(), int(max_events)
-        self.runtime = runtime or default_runtime()
-        if precision is None:
-            precision = "float64" if self.runtime.info.fp64 else "float32"
-        self.runtime.check_precision(precision)
-        self.precision = precision
-        self.dtype = self.runtime.real_dtype(precision)
-        defines = {**shape.kernel_defines(), **self.box.defines()}
-        self.kernels = self.runtime.build(
-            ["common.h", "snell_common.h", "snell_sdf.cl", "snell_trace.cl"], defines, precision
-        )
-        self._kernel = self.kernels.snell_trace
-        cl = self.runtime.cl
-        self._sp = cl.Buffer(
-            self.runtime.context,
-            cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-            hostbuf=np.ascontiguousarray(shape.kernel_params(), dtype=self.dtype),
-        )
+        self._setup(shape, box, precision, max_events, runtime)
+        self._build("snell_sdf.cl", shape.kernel_defines(), shape.kernel_params())
 
     def _inside(self, pts: np.ndarray) -> np.ndarray:
         return self.solid.inside(pts)
