@@ -40,7 +40,7 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_devices(args) -> int:
-    from .probe import lane_report
+    from .probe import lane_report, why_unusable
     from .runtime import INSTALL_HINT, list_devices
 
     infos = list_devices()
@@ -57,8 +57,7 @@ def _cmd_devices(args) -> int:
         rep = lane_report(i, "float32")
         lanes = "/".join(str(w) for w in rep["widths"]) or "none"
         if not rep["widths"]:
-            why = next((r.get("why") for r in rep["results"] if r.get("why")), rep["note"])
-            problems.append(f"{i.selector}: cannot build the kernels: {why}")
+            problems.append(f"{i.selector}: cannot build the kernels: {why_unusable(rep)}")
         print(
             f"{i.selector:5} {i.kind:5} {i.compute_units:4d} {mem:>9} "
             f"{'yes' if i.fp64 else 'no':5} {'yes' if i.float_atomics else 'no':9} "

@@ -21,7 +21,6 @@ import numpy as np
 
 from .errors import ClrefractError
 from .fields.analytic import SmoothSolid, Vec3, _plain, rotation_xyz
-from .fields.base import _smoother, _smoother_d
 
 ETA_RANGE = (1.2, 1.9)
 LIMIT = 40.0  # every family object lies inside [-LIMIT, LIMIT]^3
@@ -136,19 +135,6 @@ class SdfSolid(SmoothSolid):
         """Signed distance and its gradient (central differences), as SmoothSolid wants."""
         pts = np.asarray(pts, float).reshape(-1, 3)
         return self.distance(pts), _central_grad(self.distance, pts, self.grad_step)
-
-    def eval(self, pts):
-        """eta and grad eta; the gradient is only computed in the interface band, the only
-        place it is non-zero (keeps the 128^3 ground-truth volume cheap)."""
-        pts = np.asarray(pts, float).reshape(-1, 3)
-        s = 0.5 - self.distance(pts) / self.width
-        dn = self.eta - 1.0
-        grad = np.zeros_like(pts)
-        band = (s > 0) & (s < 1)
-        if band.any():
-            g = _central_grad(self.distance, pts[band], self.grad_step)
-            grad[band] = (-dn * _smoother_d(s[band]) / self.width)[:, None] * g
-        return 1 + dn * _smoother(s), grad
 
     def params(self):
         raise ClrefractError(

@@ -729,6 +729,8 @@ def _truncate_metrics(path: Path, iteration: int) -> None:
 
 def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stream=None) -> Fit:
     """A run ready to go: a new run folder with its field at the start, or a resumed one."""
+    from .report import write_start_report
+
     out = Path(out)
     if resume:
         if not (out / "config.toml").is_file():
@@ -748,7 +750,7 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
         (out / "metrics.jsonl").write_text("")
         t0 = time.perf_counter()
         fit.start()
-        write_start_scores(fit, time.perf_counter() - t0)
+        write_start_report(fit, time.perf_counter() - t0)
         (out / "run.json").write_text(  # the field's box: a level set's is the object's
             json.dumps(
                 {
@@ -760,18 +762,6 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
             )
         )
     return fit
-
-
-def write_start_scores(fit: Fit, seconds: float) -> dict:
-    """Scores of the start (before any gradient step) in start.json, so that every run shows
-    what the optimiser added."""
-    from .report import score_field
-
-    scores = {k: v for k, v in score_field(fit).items() if k != "views"}
-    scores["seconds"] = seconds
-    with atomic_path(fit.out / "start.json", suffix=".json") as tmp:
-        tmp.write_text(json.dumps(scores, indent=2))
-    return scores
 
 
 def _run_box(run: Path):

@@ -11,6 +11,7 @@ width as it goes: an abort at 16 lanes still leaves the narrower widths known.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -100,12 +101,17 @@ def probe_width(runtime, lanes: int, precision: str) -> dict:
     return {"lanes": lanes, "ok": ok, "build_s": round(t_build, 3), "error": err, "why": why}
 
 
-def _key(info, precision: str) -> str:
-    src = Path(__file__).read_bytes()
+@functools.lru_cache(maxsize=1)
+def _source_digest() -> str:
+    """The probe's own code: a new probe invalidates what the old one found."""
     from .runtime import kernel_source
 
+    src = Path(__file__).read_bytes()
     src += kernel_source("probe.cl").encode() + kernel_source("common.h").encode()
-    digest = hashlib.sha1(src).hexdigest()[:12]
+    return hashlib.sha1(src).hexdigest()[:12]
+
+
+def _key(info, precision: str) -> str:
     return "|".join(
         [
             info.platform,
@@ -114,7 +120,7 @@ def _key(info, precision: str) -> str:
             info.driver_version,
             info.version,
             precision,
-            digest,
+            _source_digest(),
         ]
     )
 
@@ -143,12 +149,31 @@ def _write_cache(key: str, value: dict) -> None:
         pass  # a read-only home only costs a probe per process
 
 
+_MEMO: dict[tuple[str, str], dict] = {}  # reports found by this process, per cache file
+
+
 def lane_report(info, precision: str) -> dict:
-    """{'widths': [...usable...], 'results': [...per width...], 'note': str}, cached on disk."""
+    """{'widths': [...usable...], 'results': [...per width...], 'note': str}, cached on disk
+    and in this process."""
     key = _key(info, precision)
-    cached = _read_cache().get(key)
-    if cached is not None:
-        return cached
+    memo = (str(_cache_file()), key)
+    if memo not in _MEMO:
+        _MEMO[memo] = _read_cache().get(key) or _probe(info, precision, key)
+    return _MEMO[memo]
+
+
+def why_unusable(report: dict) -> str:
+    """Why a device whose report has no width cannot run the kernels ('' when it can)."""
+    if report["widths"]:
+        return ""
+    why = next((r.get("why") for r in report["results"] if r.get("why")), report.get("note"))
+    if "unknown target CPU" in (why or ""):
+        why += " (the driver's LLVM does not recognise this CPU)"
+    return why or "no lane width builds"
+
+
+def _probe(info, precision: str, key: str) -> dict:
+    """Run the probe in a child process and write its report to the disk cache."""
     cmd = [
         sys.executable,
         "-m",
@@ -162,7 +187,7 @@ def lane_report(info, precision: str) -> dict:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=PROBE_TIMEOUT_S)
         lines, tail = proc.stdout.splitlines(), proc.stderr.strip().splitlines()
         if proc.returncode != 0:
-            last = next((s for s in reversed(tail) if "ERROR" in s or "rror" in s), None)
+            last = next((s for s in reversed(tail) if "rror" in s.lower()), None)
             note = f"the probe process ended with code {proc.returncode}"
             if last:
                 note += f" ({last.strip()[:160]})"

@@ -165,6 +165,16 @@ def surface_chamfer(field, ds, eval_fn=None) -> float | None:
     return chamfer_distance(mesh, read_ply(gt))
 
 
+def write_start_report(fit, seconds: float) -> dict:
+    """Scores of the start (before any gradient step) in start.json, so that every run shows
+    what the optimiser added (write_fit_report puts them beside the final ones)."""
+    scores = {k: v for k, v in score_field(fit).items() if k != "views"}
+    scores["seconds"] = seconds
+    with atomic_path(fit.out / "start.json", suffix=".json") as tmp:
+        tmp.write_text(json.dumps(scores, indent=2))
+    return scores
+
+
 def write_fit_report(fit) -> dict:
     out = fit.out
     plot_metrics(out / "metrics.jsonl", out / "loss.png")

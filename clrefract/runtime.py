@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import BuildError, ClrefractError
+from .probe import WIDTHS, cache_dir, lane_report, why_unusable
 
 INSTALL_HINT = (
     "Install an OpenCL driver: `pip install 'clrefract[pocl]'` or `pip install 'clrefract[cpu]'` "
@@ -57,13 +58,11 @@ def _cl():
 def kernel_source(name: str) -> str:
     """Text of one OpenCL source shipped in the package (`kernels_cl/` in the repository).
 
-    Falls back to the repository's kernels_cl/ beside the package: an editable install maps
-    clrefract.kernels_cl to the checkout it was installed from, which misses sources that
-    exist only in another worktree run through PYTHONPATH."""
+    Tests run from a checkout import its clrefract/, which has no kernels_cl subpackage when
+    the package was installed non-editable: the checkout's kernels_cl/ beside it serves."""
     try:
         return resources.files("clrefract.kernels_cl").joinpath(name).read_text()
     except (FileNotFoundError, ModuleNotFoundError) as exc:
-        # a checkout's own clrefract/ (tests run from the repository) has kernels_cl/ beside it
         beside = Path(__file__).resolve().parent.parent / "kernels_cl" / name
         if beside.is_file():
             return beside.read_text()
@@ -137,26 +136,6 @@ def list_devices() -> list[DeviceInfo]:
     return out
 
 
-def lane_widths(info: DeviceInfo, precision: str) -> list[int]:
-    """Lane widths the device builds and runs correctly (probed once per driver)."""
-    from .probe import lane_report
-
-    return lane_report(info, precision)["widths"]
-
-
-def _unusable(info: DeviceInfo) -> str:
-    """Why a device cannot run clrefract's kernels ('' when it can)."""
-    from .probe import lane_report
-
-    rep = lane_report(info, "float32")
-    if rep["widths"]:
-        return ""
-    first = next((r.get("why") for r in rep["results"] if r.get("why")), rep.get("note", ""))
-    if "unknown target CPU" in (first or ""):
-        first += " (the driver's LLVM does not recognise this CPU)"
-    return first or "no lane width builds"
-
-
 def _pick_device(selector: str | None, probe: bool = True):
     """Device from 'P:D', 'P', a name substring, or PYOPENCL_CTX; else the first GPU, else the
     first other device whose driver can build the kernels (probed once, then cached)."""
@@ -187,7 +166,7 @@ def _pick_device(selector: str | None, probe: bool = True):
         order = [i for i in infos if i.kind == "gpu"] + [i for i in infos if i.kind != "gpu"]
         chosen, failures = (order[0] if not probe else None), []
         for info in order if probe else ():
-            why = _unusable(info)
+            why = why_unusable(lane_report(info, "float32"))
             if not why:
                 chosen = info
                 break
@@ -215,7 +194,6 @@ class Runtime:
         self.queues = [cl.CommandQueue(self.context) for _ in range(queues)]
         self._programs: dict[tuple, Kernels] = {}
         self.build_seconds: dict[tuple, float] = {}  # per program built by this runtime
-        self._widths: dict[str, list[int]] = {}
 
     @property
     def queue(self):
@@ -224,12 +202,8 @@ class Runtime:
     def lane_widths(self, precision: str) -> list[int]:
         """Lane widths this device's driver builds and runs correctly."""
         if not self.probe_lanes:
-            from .probe import WIDTHS
-
             return list(WIDTHS)
-        if precision not in self._widths:
-            self._widths[precision] = lane_widths(self.info, precision)
-        return self._widths[precision]
+        return lane_report(self.info, precision)["widths"]
 
     def default_lanes(self, precision: str) -> int:
         """Rays per work-item: SIMD lanes on CPUs (PoCL does not vectorise looping kernels),
@@ -242,8 +216,8 @@ class Runtime:
 
     def check_lanes(self, lanes: int, precision: str) -> None:
         """A one-line error when the driver cannot build `lanes`-wide kernels."""
-        if lanes not in (1, 2, 4, 8, 16):
-            raise ClrefractError(f"lanes must be 1, 2, 4, 8 or 16, got {lanes}")
+        if lanes not in WIDTHS:
+            raise ClrefractError(f"lanes must be one of {WIDTHS}, got {lanes}")
         ok = self.lane_widths(precision)
         if lanes not in ok:
             if not ok:
@@ -255,8 +229,6 @@ class Runtime:
             )
 
     def _probe_why(self, lanes: int, precision: str) -> str:
-        from .probe import lane_report
-
         rep = lane_report(self.info, precision)
         rec = next((r for r in rep["results"] if r["lanes"] == lanes), {})
         return rec.get("why") or rep.get("note") or "failed"
@@ -324,8 +296,6 @@ class Runtime:
     def _build_failure(self, sources, defines, text: str, log: str) -> tuple[str, str]:
         """One line naming the driver, the program and the way round, and the compiler's first
         error; the whole log goes to a file."""
-        from .probe import cache_dir
-
         first = next(
             (s.strip() for s in log.splitlines() if "error" in s.lower() and "failed" not in s),
             log.strip().splitlines()[0] if log.strip() else "no build log",

@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from .errors import ClrefractError
-from .family import GRAD_REL, SdfSolid
+from .family import SdfSolid, _central_grad
 from .fields.base import Box
 from .runtime import Runtime
 from .snell import (
@@ -92,14 +92,7 @@ def _hit_dense(shape: SdfSolid, o, d, inside: bool, spacing: float):
         else:
             lo = mid
     t = 0.5 * (lo + hi)
-    p = (o + t * d)[None]
-    h = GRAD_REL * rb
-    g = np.array(
-        [
-            float(shape.local_distance(p + e)[0] - shape.local_distance(p - e)[0])
-            for e in np.eye(3) * h
-        ]
-    )
+    g = _central_grad(shape.local_distance, (o + t * d)[None], shape.grad_step)[0]
     return t, g / np.linalg.norm(g)
 
 

@@ -78,40 +78,27 @@ class MakeOptions:
 
 def _ray_renderer(name: str, obj, box: Box, runtime):
     """A function (origins, dirs) -> (exit directions, ok mask)."""
-    if name in FAMILY:
-        from .snell_sdf import SdfSnellRenderer
-
-        sdf = SdfSnellRenderer(obj, box, precision="float64", runtime=runtime)
-
-        def trace(o, d):
-            r = sdf.trace(o, d)
-            return r.direction, (r.status == 0) | (r.status == 1)
-
-        return trace
-    if name in SOLIDS:
-        from .snell import SnellRenderer
-
-        snell = SnellRenderer(obj, box, precision="float64", runtime=runtime)
-
-        def trace(o, d):
-            r = snell.trace(o, d)
-            return r.direction, (r.status == 0) | (r.status == 1)
-
-        return trace
     from .tracer import Status, Tracer
 
-    tracer = Tracer(
-        obj,
-        box,
-        step=0.05,
-        integrator="rkn4",
-        precision="float64",
-        runtime=runtime,
-        max_steps=20000,
-    )
+    if name in FAMILY or name in SOLIDS:
+        from .snell import SnellRenderer
+        from .snell_sdf import SdfSnellRenderer
+
+        cls = SdfSnellRenderer if name in FAMILY else SnellRenderer
+        renderer = cls(obj, box, precision="float64", runtime=runtime)
+    else:
+        renderer = Tracer(
+            obj,
+            box,
+            step=0.05,
+            integrator="rkn4",
+            precision="float64",
+            runtime=runtime,
+            max_steps=20000,
+        )
 
     def trace(o, d):
-        r = tracer.trace(o, d)
+        r = renderer.trace(o, d)
         return r.direction, (r.status == Status.EXITED) | (r.status == Status.MISSED)
 
     return trace

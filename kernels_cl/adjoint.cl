@@ -70,7 +70,7 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
     realv n = TO_REALV(VLOAD(i, steps));
     FIELD_ACC_DECL
     realv worst = RV(0); /* largest distance from a checkpoint when the ray reached it */
-    const realv m0 = fmax(mx * mx + my * my + mz * mz, RV(1e-30));
+    const realv inv_m0 = RV(1) / fmax(mx * mx + my * my + mz * mz, RV(1e-30));
     const realv g2 = RV(growth_max * growth_max);
     realv grown = RV(1), alive = RV(1);
     const REAL k = -h, k2 = (REAL)0.5 * k, k8 = (REAL)0.125 * k, s6 = (REAL)1 / (REAL)6;
@@ -101,7 +101,7 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
         ADV(x, vx, ax, bx_, cx); ADV(y, vy, ay, by_, cy); ADV(z, vz, az, bz_, cz);
         ADV(mx, nx, amx, bmx, cmx); ADV(my, ny, amy, bmy, cmy); ADV(mz, nz, amz, bmz, cmz);
 #undef ADV
-        realv m2 = (mx * mx + my * my + mz * mz) / m0;
+        realv m2 = (mx * mx + my * my + mz * mz) * inv_m0;
         grown = SEL(grown, fmax(grown, m2), active);
         if (growth_max > (REAL)0)
             alive = SEL(alive, RV(0), active && m2 > g2);

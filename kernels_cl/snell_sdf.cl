@@ -29,12 +29,10 @@
 #define MAX_MARCH 20000
 #define MAX_BISECT 200
 
-inline REAL norm3(real3 v) { return sqrt(dot(v, v)); }
-
 inline REAL rounded_box(real3 p, REAL b, REAL r) {
     real3 q = fabs(p) - b;
     real3 qp = fmax(q, (REAL)0);
-    return norm3(qp) + fmin(fmax(q.x, fmax(q.y, q.z)), (REAL)0) - r;
+    return length(qp) + fmin(fmax(q.x, fmax(q.y, q.z)), (REAL)0) - r;
 }
 
 inline REAL smin(REAL a, REAL b, REAL k) {
@@ -45,7 +43,7 @@ inline REAL smin(REAL a, REAL b, REAL k) {
 /* The signed distance at local point p; q = sp + 15. */
 inline REAL shape_sdf(__global const REAL *q, real3 p) {
 #if defined(SHAPE_SDF_SPHERE)
-    return norm3(p) - q[0];
+    return length(p) - q[0];
 #elif defined(SHAPE_ROUNDED_CUBE)
     return rounded_box(p, q[0], q[1]);
 #elif defined(SHAPE_CYLINDER)
@@ -62,7 +60,7 @@ inline REAL shape_sdf(__global const REAL *q, real3 p) {
     real3 ps = p, pb = p;
     ps.x -= q[0];
     pb.x -= q[2];
-    return fmin(norm3(ps) - q[1], rounded_box(pb, q[3], q[4]));
+    return fmin(length(ps) - q[1], rounded_box(pb, q[3], q[4]));
 #elif defined(SHAPE_VASE)
     /* q: half height, waist radius, waist z, k of r(z) = waist + k (z - waist_z)^2 */
     REAL u = p.z - q[2];
@@ -77,7 +75,7 @@ inline REAL shape_sdf(__global const REAL *q, real3 p) {
         real3 a = r3(c[0], c[1], c[2]);
         real3 ba = r3(c[3], c[4], c[5]) - a, pa = p - a;
         REAL t = clamp(dot(pa, ba) / fmax(dot(ba, ba), (REAL)1e-30), (REAL)0, (REAL)1);
-        REAL di = norm3(pa - t * ba) - c[6];
+        REAL di = length(pa - t * ba) - c[6];
         d = i == 0 ? di : smin(d, di, q[0]);
     }
     return d;

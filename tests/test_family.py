@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from rays import camera_rays, unit
 
 from clrefract.cameras import fibonacci_sphere_cameras
 from clrefract.cli import main
@@ -32,17 +33,6 @@ from clrefract.synth import MakeOptions, make_dataset, read_ply
 from clrefract.tracer import Status
 
 
-def _unit(a):
-    return a / np.linalg.norm(a, axis=-1, keepdims=True)
-
-
-def _aimed_rays(n, spread, center=(0.0, 0.0, 0.0), seed=0, dist=200.0):
-    """Origins on a sphere of radius dist aimed at uniform points of the cube +-spread."""
-    rng = np.random.default_rng(seed)
-    o = dist * _unit(rng.normal(size=(n, 3)))
-    return o, np.asarray(center) + rng.uniform(-spread, spread, (n, 3)) - o
-
-
 def _world(shape, local):
     """Local points (n, 3) of a shape to world: x = c + M^T l."""
     return np.asarray(local, float) @ shape.world_to_local + np.asarray(shape.center)
@@ -56,7 +46,7 @@ def test_sdf_renderer_matches_the_analytic_sphere():
     ball = SdfSphere(radius=20.0, eta=1.5, center=c, tilt=(10.0, 20.0, 30.0))
     exact = SnellRenderer(Sphere(radius=20.0, eta=1.5, center=c))
     sdf = SdfSnellRenderer(ball, precision="float64")
-    o, d = _aimed_rays(3000, 25.0, c, seed=1)
+    o, d = camera_rays(3000, 25.0, c, seed=1)
     a, b = exact.trace(o, d), sdf.trace(o, d)
     assert np.array_equal(a.status, b.status) and np.array_equal(a.events, b.events)
     assert (b.status == Status.EXITED).sum() > 1000 and (b.status == Status.MISSED).sum() > 500
@@ -113,9 +103,7 @@ def test_family_shape_sdf_renders_and_meshes(name):
             assert got == pytest.approx(want, abs=1e-9), (loc, got)
     # outside the bounding sphere everything is outside, and the bound is within the limit
     rng = np.random.default_rng(0)
-    far = np.asarray(shape.center) + (shape.bounding_radius + 0.5) * _unit(
-        rng.normal(size=(500, 3))
-    )
+    far = np.asarray(shape.center) + (shape.bounding_radius + 0.5) * unit(rng.normal(size=(500, 3)))
     assert np.all(shape.distance(far) > 0) and not shape.inside(far).any()
     assert 10.0 <= shape.bounding_radius <= LIMIT
     # the kernel on a small camera set: finite, nearly all rays leave
@@ -133,8 +121,8 @@ def test_family_shape_sdf_renders_and_meshes(name):
         assert np.abs(shape.distance(res.surface[hit])).max() < 1e-8
         # refraction turns or shifts every ray that went through (parallel cube faces only
         # shift it)
-        turned = np.linalg.norm(res.direction - _unit(d), axis=1) > 1e-3
-        shifted = np.linalg.norm(np.cross(res.surface - o, _unit(d)), axis=1) > 1e-3
+        turned = np.linalg.norm(res.direction - unit(d), axis=1) > 1e-3
+        shifted = np.linalg.norm(np.cross(res.surface - o, unit(d)), axis=1) > 1e-3
         assert (turned | shifted)[res.status == Status.EXITED].mean() > 0.95
     assert hits > 80 and trapped <= 0.02 * hits
     # mesh: non-empty, on the zero set, as big as the object
@@ -148,7 +136,7 @@ def test_family_shape_sdf_renders_and_meshes(name):
 @pytest.mark.parametrize("name", FAMILY)
 def test_kernel_matches_dense_sampling_reference(name):
     shape = make_shape(name)
-    o, d = _aimed_rays(80, 0.7 * shape.bounding_radius, shape.center, seed=4)
+    o, d = camera_rays(80, 0.7 * shape.bounding_radius, shape.center, seed=4)
     res = SdfSnellRenderer(shape).trace(o, d)
     ref = snell_sdf_numpy(shape, o, d)
     assert np.array_equal(res.status, ref.status) and np.array_equal(res.events, ref.events)
@@ -162,7 +150,7 @@ def test_kernel_matches_dense_sampling_reference(name):
 
 def test_float32_close_to_float64():
     shape = make_shape("bowl")
-    o, d = _aimed_rays(3000, 15.0, shape.center, seed=6)
+    o, d = camera_rays(3000, 15.0, shape.center, seed=6)
     a = SdfSnellRenderer(shape, precision="float64").trace(o, d)
     b = SdfSnellRenderer(shape, precision="float32").trace(o, d)
     assert (a.status == b.status).mean() > 0.99
@@ -176,7 +164,7 @@ def test_lipschitz_bound_holds_for_the_vase():
     vase = Vase()
     rng = np.random.default_rng(5)
     p = rng.uniform(-vase.bounding_radius, vase.bounding_radius, (20000, 3)) / np.sqrt(3)
-    q = p + 1e-3 * _unit(rng.normal(size=p.shape))
+    q = p + 1e-3 * unit(rng.normal(size=p.shape))
     ratio = np.abs(vase.local_distance(q) - vase.local_distance(p)) / 1e-3
     assert ratio.max() <= vase.lipschitz
     assert vase.lipschitz < 1.5  # the normalisation keeps it near a distance
@@ -198,7 +186,7 @@ def test_random_solids_seeds_and_rebuild():
         s = RandomSolid(seed=seed)
         assert s.inside(np.zeros((1, 3)))[0]
         p = pts[:500]
-        q = p + 1e-3 * _unit(np.random.default_rng(seed).normal(size=p.shape))
+        q = p + 1e-3 * unit(np.random.default_rng(seed).normal(size=p.shape))
         assert np.abs(s.distance(q) - s.distance(p)).max() / 1e-3 <= 1 + 1e-6
         v, _ = s.mesh(spacing=1.5)
         g = np.linalg.norm(s.sdf(v)[1], axis=1)

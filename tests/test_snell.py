@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from rays import camera_rays, unit
 
 from clrefract.errors import ClrefractError
 from clrefract.fields.analytic import Drop, Luneburg, Prism, Sphere
@@ -16,17 +17,6 @@ SOLIDS = {
     "prism": (Prism(), (30.0, 30.0, 30.0)),
     "drop": (Drop(), (13.0, 13.0, 23.0)),
 }
-
-
-def _unit(a):
-    return a / np.linalg.norm(a, axis=-1, keepdims=True)
-
-
-def _camera_rays(n, spread, seed=0, dist=200.0):
-    """Origins on a sphere of radius dist aimed at uniform points of the box +-spread."""
-    rng = np.random.default_rng(seed)
-    o = dist * _unit(rng.normal(size=(n, 3)))
-    return o, rng.uniform(-1, 1, (n, 3)) * np.asarray(spread) - o
 
 
 def _angle(a, b):
@@ -71,12 +61,12 @@ def test_sphere_matches_closed_form():
 
 def test_sphere_conserves_angular_momentum():
     sphere, spread = SOLIDS["sphere"]
-    o, d = _camera_rays(4000, spread, seed=1)
+    o, d = camera_rays(4000, spread, seed=1)
     res = SnellRenderer(sphere).trace(o, d)
     c = np.asarray(sphere.center)
     ok = res.status == Status.EXITED
     assert ok.sum() > 1000
-    l0 = np.cross(o - c, _unit(d))
+    l0 = np.cross(o - c, unit(d))
     l1 = np.cross(res.surface - c, res.direction)
     assert np.abs(l1 - l0)[ok].max() < 1e-11
 
@@ -120,7 +110,7 @@ def test_prism_deviation_formula():
     r1 = np.arcsin(np.sin(t1) / n)
     t2 = np.arcsin(n * np.sin(A - r1))
     delta = t1 + t2 - A
-    assert np.abs(_angle(_unit(d), res.direction) - delta).max() < 1e-12
+    assert np.abs(_angle(unit(d), res.direction) - delta).max() < 1e-12
     # it leaves through face 2, in the principal plane
     h = prism.side / (2 * math.sqrt(3.0))
     loc = _to_local(prism, res.surface)
@@ -131,7 +121,7 @@ def test_prism_deviation_formula():
     t_min = math.degrees(math.asin(n * math.sin(A / 2)))
     o, d = _prism_rays(prism, [t_min - 2.0, t_min, t_min + 2.0])
     res = SnellRenderer(prism).trace(o, d)
-    dev = _angle(_unit(d), res.direction)
+    dev = _angle(unit(d), res.direction)
     assert dev[1] < dev[0] and dev[1] < dev[2]
     assert math.sin((A + dev[1]) / 2) / math.sin(A / 2) == pytest.approx(n, abs=1e-12)
 
@@ -176,14 +166,14 @@ def test_prism_total_internal_reflection():
 
 def test_drop_surface_points_and_axial_angular_momentum():
     drop, spread = SOLIDS["drop"]
-    o, d = _camera_rays(4000, spread, seed=2)
+    o, d = camera_rays(4000, spread, seed=2)
     res = SnellRenderer(drop).trace(o, d)
     hit = res.status != Status.MISSED
     assert hit.sum() > 1500
     assert np.any(res.events > 2)  # total internal reflection inside the drop happens
     assert np.abs(_drop_F(res.surface[hit] - np.asarray(drop.center), drop.R, drop.H)).max() < 1e-8
     # the normal of a body of revolution lies in the meridional plane: L_z is conserved
-    du = _unit(d)
+    du = unit(d)
     lz0 = o[:, 0] * du[:, 1] - o[:, 1] * du[:, 0]
     lz1 = res.surface[:, 0] * res.direction[:, 1] - res.surface[:, 1] * res.direction[:, 0]
     ok = res.status == Status.EXITED
@@ -196,7 +186,7 @@ def test_drop_surface_points_and_axial_angular_momentum():
 @pytest.mark.parametrize("kind", list(SOLIDS))
 def test_kernel_matches_numpy_reference(kind):
     solid, spread = SOLIDS[kind]
-    o, d = _camera_rays(300, spread, seed=4)
+    o, d = camera_rays(300, spread, seed=4)
     res = SnellRenderer(solid, precision="float64").trace(o, d)
     ref = snell_numpy(solid, o, d)
     assert np.array_equal(res.status, ref.status)
@@ -216,7 +206,7 @@ def test_kernel_matches_numpy_reference(kind):
 @pytest.mark.parametrize("kind", list(SOLIDS))
 def test_float32_close_to_float64(kind):
     solid, spread = SOLIDS[kind]
-    o, d = _camera_rays(3000, spread, seed=5)
+    o, d = camera_rays(3000, spread, seed=5)
     r64 = SnellRenderer(solid, precision="float64").trace(o, d)
     r32 = SnellRenderer(solid, precision="float32").trace(o, d)
     assert (r32.status == r64.status).mean() > 0.99
@@ -238,7 +228,7 @@ def test_missed_rays_keep_their_direction(kind):
     d = np.column_stack([np.ones(50), np.full(50, 0.5), np.full(50, 0.7)])  # far above it
     res = SnellRenderer(solid).trace(o, 3.0 * d)
     assert np.all(res.status == Status.MISSED) and np.all(res.events == 0)
-    assert np.abs(res.direction - _unit(d)).max() < 1e-15
+    assert np.abs(res.direction - unit(d)).max() < 1e-15
     assert np.array_equal(res.position, o)
     ref = snell_numpy(solid, o, d)
     assert np.all(ref.status == Status.MISSED)

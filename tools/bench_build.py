@@ -111,7 +111,7 @@ def main() -> int:
         _child(dev, fam, int(lanes) or None)
         return 0
 
-    from clrefract.probe import lane_report
+    from clrefract.probe import lane_report, why_unusable
     from clrefract.runtime import list_devices
 
     infos = list_devices()
@@ -120,8 +120,7 @@ def main() -> int:
     for info in chosen:
         rep = lane_report(info, "float32")
         if not rep["widths"]:
-            why = next((r.get("why") for r in rep["results"] if r.get("why")), rep["note"])
-            rows.append({"device": info.driver, "family": "(all)", "error": why})
+            rows.append({"device": info.driver, "family": "(all)", "error": why_unusable(rep)})
             continue
         for name, fam in FAMILIES.items():
             with tempfile.TemporaryDirectory() as tmp:

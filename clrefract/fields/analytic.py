@@ -179,11 +179,22 @@ class SmoothSolid(AnalyticField):
         """Signed distance (n,) and its gradient (n, 3)."""
         raise NotImplementedError
 
+    def distance(self, pts):
+        """Signed distance (n,) alone (solids whose gradient is costly skip it)."""
+        return self.sdf(pts)[0]
+
     def eval(self, pts):
-        sd, n = self.sdf(pts)
-        s = 0.5 - sd / self.width
+        """eta and grad eta; the gradient is computed only in the interface band, the only
+        place it is non-zero."""
+        pts = np.asarray(pts, float).reshape(-1, 3)
+        s = 0.5 - self.distance(pts) / self.width
         dn = self.eta - 1.0
-        return 1 + dn * _smoother(s), (-dn * _smoother_d(s) / self.width)[:, None] * n
+        grad = np.zeros_like(pts)
+        band = (s > 0) & (s < 1)
+        if band.any():
+            n = self.sdf(pts[band])[1]
+            grad[band] = (-dn * _smoother_d(s[band]) / self.width)[:, None] * n
+        return 1 + dn * _smoother(s), grad
 
 
 @dataclass
