@@ -58,7 +58,7 @@ class FitConfig:
     features: int = 2
     log2_table: int = 16
     n_min: int = 8
-    n_max: int = 128
+    n_max: int = 64  # finest level over the object's box: about 1 mm cells on 128 x 128 views
     hidden: int = 32
     layers: int = 2
     eta_max: float = 0.0  # 0: the scene's upper eta bound
@@ -77,6 +77,9 @@ class FitConfig:
     mask_threshold: float = 0.05  # sRGB difference from the straight view that marks a pixel
     free_cells: int = 2  # cells around the hull where eta may change (-1: everywhere)
     hull_tolerance: float = 0.2  # fraction of the views whose mask may have a hole
+    # share of each training batch drawn from the refraction masks (grown by 2 pixels), the
+    # rest from all pixels; 0: all pixels alike (a mask rarely covers more than a tenth)
+    mask_share: float = 0.0
     env_blur: float = 0.0  # initial environment blur in pixels, sharpened to 0
     blur_until: float = 0.5  # fraction of the iterations over which the blur goes to 0
     step: float = 0.0  # mm; 0: width/4 for a level set, 1 for the others
@@ -102,7 +105,7 @@ class FitConfig:
     def step_mm(self) -> float:
         if self.step > 0:
             return self.step
-        return self.width / 4 if self.field == "levelset" else 1.0
+        return {"levelset": self.width / 4, "hashgrid": 0.5}.get(self.field, 1.0)
 
     def validate(self) -> None:
         if self.field not in FIELDS:
@@ -179,9 +182,15 @@ def blur_at(cfg: FitConfig, it: int) -> float:
     return cfg.env_blur * max(0.0, 1.0 - frac)
 
 
-def batch_indices(cfg: FitConfig, it: int, n: int) -> np.ndarray:
+def batch_indices(cfg: FitConfig, it: int, n: int, marked: np.ndarray | None = None) -> np.ndarray:
+    """Training rays of an iteration: a share from `marked` (the masks), the rest from all."""
     rng = np.random.default_rng([cfg.seed, it])
-    return rng.integers(0, n, size=min(cfg.batch, n))
+    size = min(cfg.batch, n)
+    if marked is None or len(marked) < 16 or cfg.mask_share <= 0:
+        return rng.integers(0, n, size=size)
+    k = int(round(size * min(cfg.mask_share, 1.0)))
+    return np.concatenate([marked[rng.integers(0, len(marked), size=k)],
+                           rng.integers(0, n, size=size - k)])
 
 
 def make_field(cfg: FitConfig, box, eta_max: float, res: int):
@@ -227,6 +236,7 @@ class Fit:
         self._env_cache: dict[float, tuple] = {}
         self.it = 0
         self._masks = None
+        self._marked = None
         self._hulls: dict = {}
         self._free = None
         self.init_info: dict = {}
@@ -240,7 +250,7 @@ class Fit:
     def _make_field(self, res: int):
         return make_field(self.cfg, self.box, self.eta_max, res)
 
-    def _bind(self, field) -> None:
+    def _bind(self, field, step: float = 0.0) -> None:
         from .gradient import GradientEngine
 
         self.field = field
@@ -248,7 +258,7 @@ class Fit:
         self.engine = GradientEngine(
             field,
             self.box,
-            step=self.cfg.step_mm,
+            step=step or self.cfg.step_mm,
             precision=self.cfg.precision,
             lanes=self.cfg.lanes or None,
             runtime=self.runtime,
@@ -270,16 +280,49 @@ class Fit:
 
     def start(self) -> None:
         res = resolution_at(self.cfg, 0)
-        if self.cfg.field == "levelset":
+        if self.cfg.field == "levelset" or (self.cfg.field == "hashgrid" and self._hull_fit()):
             self.box = self._object_box()
-        self._bind(self._make_field(res))
+        if self.cfg.field == "hashgrid" and self._hull_fit():
+            self._start_hashgrid(res)
+        else:
+            self._bind(self._make_field(res))
+            if self._hull_fit():
+                self._fill_hull()
         self.adam = Adam(len(self.params), self._groups())
-        if self._hull_fit():
-            self._fill_hull()
+
+    def _start_hashgrid(self, res: int) -> None:
+        """A hash grid starts as the level-set start (hull, index and offset searched the
+        same way), fitted to its eta at points of the box: it starts where a level set does,
+        as its output bias alone would take thousands of steps to reach glass."""
+        from dataclasses import replace
+
+        from .fields.levelset import LevelSetField
+
+        guide_cfg = replace(self.cfg, field="levelset", step=self.cfg.width / 4)
+        self._bind(make_field(guide_cfg, self.box, self.eta_max, res), step=guide_cfg.step)
+        self._fill_hull()
+        guide = self.field
+        assert isinstance(guide, LevelSetField)
+        field = self._make_field(0)
+        rng = np.random.default_rng([self.cfg.seed, 3])
+        lo, size = np.asarray(self.box.lo), self.box.size
+        pts = lo + rng.uniform(size=(200_000, 3)) * size
+        eta = guide.eval(pts)[0]
+        # as many points again in the interface band, where the field must be sharp
+        band = pts[(eta > 1.0 + 1e-6) & (eta < guide.eta - 1e-6)]
+        if len(band):
+            jitter = rng.normal(scale=self.cfg.width / 2, size=(200_000, 3))
+            more = np.clip(band[rng.integers(0, len(band), 200_000)] + jitter, lo, lo + size)
+            pts, eta = np.concatenate([pts, more]), np.concatenate([eta, guide.eval(more)[0]])
+        rms = field.fit_values(pts, eta, seed=self.cfg.seed)
+        self.init_info["distilled_rms"] = rms
+        self.stream.write(f"start: hash grid fitted to the level-set start (eta RMS {rms:.4f})\n")
+        (self.out / "init.json").write_text(json.dumps(self.init_info, indent=2))
+        self._bind(field)
 
     # --- the visual hull: where the object can be -------------------------------------------
     def _hull_fit(self) -> bool:
-        return self.cfg.init == "hull" and self.cfg.field in GRID_FIELDS
+        return self.cfg.init == "hull"
 
     def _refraction_masks(self) -> list:
         from .hull import refraction_mask
@@ -342,6 +385,7 @@ class Fit:
         also picks how much to smooth the hull: a visual hull from finitely many views is
         faceted (flat between the view cones), and a sharp surface shows every facet."""
         hull = self._hull(self.field.values.shape[0])
+        levelset = self._levelset_bound()
         if not hull.found:
             self.stream.write("start: no refraction mask agrees across views; eta = 1\n")
             return
@@ -349,7 +393,7 @@ class Fit:
         etas = np.linspace(1.0, self.ds.scene.eta_range[1], 9)
         self._set_start(hull, 1.0, 0.0)
         empty = self._forward_loss(idx)
-        if self.cfg.field == "levelset":
+        if levelset:
             best = (np.inf, 1.0, 0.0, 0.0)
             for sigma in hull.width * np.array([0.0, 1.0, 2.0, 3.0, 4.0, 6.0]):
                 # the first smoothing searches index and offset jointly, the others near its pick
@@ -432,9 +476,14 @@ class Fit:
                             loss, eta = trial, float(e)
         return loss, eta, offset
 
+    def _levelset_bound(self) -> bool:
+        from .fields.levelset import LevelSetField
+
+        return isinstance(self.field, LevelSetField)
+
     def _set_start(self, hull, eta: float, offset: float) -> None:
         """The field as the hull grown by offset mm and filled with index eta."""
-        if self.cfg.field == "levelset":
+        if self._levelset_bound():
             phi = -np.clip(hull.distance + offset, -8 * hull.width, 8 * hull.width)
             self.params[:-1] = phi.ravel()
             self.params[-1] = eta
@@ -543,14 +592,22 @@ class Fit:
         self.best = best if np.isfinite(best[0]) else (np.inf, 0, None)
 
     # --- the loop ----------------------------------------------------------------------------
+    def _marked_rays(self) -> np.ndarray:
+        """Training rays the masks (grown by 2 pixels) mark."""
+        from scipy.ndimage import binary_dilation
+
+        if self._marked is None:
+            self._marked = np.flatnonzero(
+                np.concatenate(
+                    [binary_dilation(m, iterations=2).ravel() for m in self._refraction_masks()]
+                )
+            )
+        return self._marked
+
     def _mask_batch(self, tag: int) -> np.ndarray:
         """A fixed batch of the training rays that the masks (grown by 2 pixels) mark: only
         they can see the object, so they carry the whole signal of a start search."""
-        from scipy.ndimage import binary_dilation
-
-        marked = np.flatnonzero(
-            np.concatenate([binary_dilation(m, iterations=2).ravel() for m in self._masks])
-        )
+        marked = self._marked_rays()
         if len(marked) < 16:
             return self._fixed_batch(tag)
         rng = np.random.default_rng([self.cfg.seed, tag])
@@ -594,7 +651,8 @@ class Fit:
 
     def step(self) -> dict:
         self._maybe_regrid()
-        idx = batch_indices(self.cfg, self.it, len(self.origins))
+        marked = self._marked_rays() if self.cfg.mask_share > 0 else None
+        idx = batch_indices(self.cfg, self.it, len(self.origins), marked)
         t0 = time.perf_counter()
         targets = self.targets_at(self.it)
         r = self.engine.loss_and_grad(

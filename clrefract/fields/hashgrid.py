@@ -610,6 +610,36 @@ class HashGridField(Field):
         omb = w * eta * win * g1
         return eta, ge, hm, self._reverse2(ob, omb, mu, tape, p)
 
+    def fit_values(
+        self, pts: np.ndarray, eta: np.ndarray, iterations: int = 300, batch: int = 8192,
+        seed: int = 0, stream=None,
+    ) -> float:
+        """Fit the field to eta values at points (least squares, Adam): the start of a fit
+        from a simpler field. Returns the RMS error over all the points."""
+        from ..adam import Adam
+
+        pts = np.asarray(pts, np.float64).reshape(-1, 3)
+        eta = np.asarray(eta, np.float64).reshape(-1)
+        k = self.config.eta_max - 1.0
+        win = box_window(self.box, pts)[0]
+        rng = np.random.default_rng(seed)
+        p = self.params_vec.copy()
+        adam = Adam(len(p), self.param_groups(lr_table=3e-2, lr_mlp=3e-3))
+        zeros = np.zeros((min(batch, len(pts)), 3))
+        for it in range(iterations):
+            i = rng.integers(0, len(pts), size=min(batch, len(pts)))
+            o, _, _, tape = self._forward2(pts[i], None, p, hessian=False)
+            so = _sigmoid(o)
+            r = 1.0 + win[i] * k * so - eta[i]
+            ob = 2.0 / len(i) * r * win[i] * k * so * (1 - so)
+            adam.step(p, self._reverse2(ob, np.zeros(len(i)), zeros[: len(i)], tape, p),
+                      lr_scale=0.1 ** (it / iterations))
+        self.set_data(p)
+        err = np.concatenate(
+            [self.eval(pts[a : a + _CHUNK])[0] - eta[a : a + _CHUNK] for a in range(0, len(pts), _CHUNK)]
+        )
+        return float(np.sqrt(np.mean(err**2)))
+
     def regularizer(self, params: np.ndarray) -> tuple[float, np.ndarray]:
         """Mean over fixed points where the window is 1 of (cell * d eta / dx_a)^2 over the axes,
         cell = the finest level's cell (a discrete squared gradient in the voxel grid's
