@@ -99,6 +99,10 @@ class FitConfig:
     # loss on a fixed batch of training rays every this many iterations (0: never); the run
     # keeps the parameters that scored best there (at the final grid resolution)
     validate_every: int = 25
+    # training views held out of the gradient for that validation (every k-th view; 0, or
+    # fewer than five training views each: validate on training rays): what generalises to
+    # new views, not what fits the training rays best
+    val_views: int = 8
     test_views: int = -1  # test views rendered at the end (-1: all)
 
     @property
@@ -182,15 +186,27 @@ def blur_at(cfg: FitConfig, it: int) -> float:
     return cfg.env_blur * max(0.0, 1.0 - frac)
 
 
-def batch_indices(cfg: FitConfig, it: int, n: int, marked: np.ndarray | None = None) -> np.ndarray:
-    """Training rays of an iteration: a share from `marked` (the masks), the rest from all."""
+def batch_indices(
+    cfg: FitConfig, it: int, pool: np.ndarray, marked: np.ndarray | None = None
+) -> np.ndarray:
+    """Training rays of an iteration, from `pool`: a share from `marked` (the masks' rays in
+    the pool), the rest from all of it."""
     rng = np.random.default_rng([cfg.seed, it])
-    size = min(cfg.batch, n)
+    size = min(cfg.batch, len(pool))
     if marked is None or len(marked) < 16 or cfg.mask_share <= 0:
-        return rng.integers(0, n, size=size)
+        return pool[rng.integers(0, len(pool), size=size)]
     k = int(round(size * min(cfg.mask_share, 1.0)))
-    return np.concatenate([marked[rng.integers(0, len(marked), size=k)],
-                           rng.integers(0, n, size=size - k)])
+    return np.concatenate(
+        [marked[rng.integers(0, len(marked), size=k)], pool[rng.integers(0, len(pool), size - k)]]
+    )
+
+
+def held_out_views(cfg: FitConfig, n_views: int) -> list[int]:
+    """Training views kept for validation: every k-th, or none with too few views."""
+    count = min(cfg.val_views, n_views // 5)
+    if count <= 0:
+        return []
+    return list(range(n_views // count // 2, n_views, n_views // count))[:count]
 
 
 def make_field(cfg: FitConfig, box, eta_max: float, res: int):
@@ -232,11 +248,17 @@ class Fit:
         self.box = self.ds.box
         self.eta_max = cfg.eta_max or self.ds.scene.eta_range[1] * 1.05
         self.origins, self.dirs, self.rgb = self.ds.rays_and_pixels("train")
+        # rays of each training view, in order; held-out views serve validation only
+        sizes = [cam.width * cam.height for cam in self.ds.train]
+        view = np.repeat(np.arange(len(sizes)), sizes)
+        held = np.isin(view, held_out_views(cfg, len(sizes)))
+        self._pool, self._held = np.flatnonzero(~held), np.flatnonzero(held)
         self._env_full = self.ds.envmap()
         self._env_cache: dict[float, tuple] = {}
         self.it = 0
         self._masks = None
         self._marked = None
+        self._val_idx = None
         self._hulls: dict = {}
         self._free = None
         self.init_info: dict = {}
@@ -313,8 +335,11 @@ class Fit:
         if len(band):
             jitter = rng.normal(scale=self.cfg.width / 2, size=(200_000, 3))
             more = np.clip(band[rng.integers(0, len(band), 200_000)] + jitter, lo, lo + size)
-            pts, eta = np.concatenate([pts, more]), np.concatenate([eta, guide.eval(more)[0]])
-        rms = field.fit_values(pts, eta, seed=self.cfg.seed)
+            pts = np.concatenate([pts, more])
+        eta, grad = guide.eval(pts)
+        rms = field.fit_values(
+            pts, eta, grad, scale=self.cfg.width, iterations=1000, seed=self.cfg.seed
+        )
         self.init_info["distilled_rms"] = rms
         self.stream.write(f"start: hash grid fitted to the level-set start (eta RMS {rms:.4f})\n")
         (self.out / "init.json").write_text(json.dumps(self.init_info, indent=2))
@@ -607,7 +632,7 @@ class Fit:
     def _mask_batch(self, tag: int) -> np.ndarray:
         """A fixed batch of the training rays that the masks (grown by 2 pixels) mark: only
         they can see the object, so they carry the whole signal of a start search."""
-        marked = self._marked_rays()
+        marked = np.intersect1d(self._marked_rays(), self._pool, assume_unique=True)
         if len(marked) < 16:
             return self._fixed_batch(tag)
         rng = np.random.default_rng([self.cfg.seed, tag])
@@ -616,7 +641,7 @@ class Fit:
     def _fixed_batch(self, tag: int) -> np.ndarray:
         """A batch of training rays that depends only on (seed, tag)."""
         rng = np.random.default_rng([self.cfg.seed, tag])
-        return rng.integers(0, len(self.origins), size=min(self.cfg.batch, len(self.origins)))
+        return self._pool[rng.integers(0, len(self._pool), size=min(self.cfg.batch, len(self._pool)))]
 
     def _forward_loss(self, idx: np.ndarray) -> float:
         """Loss of the current field on training rays idx, against the sharp environment
@@ -628,7 +653,20 @@ class Fit:
         )
 
     def validation_loss(self) -> float:
-        return self._forward_loss(self._fixed_batch(11))
+        """Loss on a fixed batch of the held-out views' rays, most through their masks
+        (elsewhere every field near the hull renders alike); on training rays without
+        held-out views."""
+        if len(self._held) == 0:
+            return self._forward_loss(self._fixed_batch(11))
+        if self._val_idx is None:
+            rng = np.random.default_rng([self.cfg.seed, 11])
+            marked = np.intersect1d(self._marked_rays(), self._held, assume_unique=True)
+            size = min(self.cfg.batch, len(self._held))
+            k = min(len(marked), size * 3 // 4)
+            self._val_idx = np.concatenate(
+                [rng.choice(marked, k, replace=False), rng.choice(self._held, size - k)]
+            )
+        return self._forward_loss(self._val_idx)
 
     def _track_best(self) -> float | None:
         every = self.cfg.validate_every
@@ -651,8 +689,10 @@ class Fit:
 
     def step(self) -> dict:
         self._maybe_regrid()
-        marked = self._marked_rays() if self.cfg.mask_share > 0 else None
-        idx = batch_indices(self.cfg, self.it, len(self.origins), marked)
+        marked = None
+        if self.cfg.mask_share > 0:
+            marked = np.intersect1d(self._marked_rays(), self._pool, assume_unique=True)
+        idx = batch_indices(self.cfg, self.it, self._pool, marked)
         t0 = time.perf_counter()
         targets = self.targets_at(self.it)
         r = self.engine.loss_and_grad(

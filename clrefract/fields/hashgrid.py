@@ -611,29 +611,46 @@ class HashGridField(Field):
         return eta, ge, hm, self._reverse2(ob, omb, mu, tape, p)
 
     def fit_values(
-        self, pts: np.ndarray, eta: np.ndarray, iterations: int = 300, batch: int = 8192,
-        seed: int = 0, stream=None,
+        self,
+        pts: np.ndarray,
+        eta: np.ndarray,
+        grad: np.ndarray | None = None,
+        scale: float = 1.0,
+        iterations: int = 300,
+        batch: int = 8192,
+        seed: int = 0,
     ) -> float:
-        """Fit the field to eta values at points (least squares, Adam): the start of a fit
-        from a simpler field. Returns the RMS error over all the points."""
+        """Fit the field to eta values at points, and to their gradient (scaled by `scale`
+        mm: refraction follows the normals, which values alone leave rough), by least
+        squares with Adam: the start of a fit from a simpler field. Returns the RMS error
+        of eta over all the points."""
         from ..adam import Adam
 
         pts = np.asarray(pts, np.float64).reshape(-1, 3)
         eta = np.asarray(eta, np.float64).reshape(-1)
         k = self.config.eta_max - 1.0
-        win = box_window(self.box, pts)[0]
+        win, gwin, _ = _window_hessian(self.box, pts)
         rng = np.random.default_rng(seed)
         p = self.params_vec.copy()
         adam = Adam(len(p), self.param_groups(lr_table=3e-2, lr_mlp=3e-3))
-        zeros = np.zeros((min(batch, len(pts)), 3))
         for it in range(iterations):
             i = rng.integers(0, len(pts), size=min(batch, len(pts)))
-            o, _, _, tape = self._forward2(pts[i], None, p, hessian=False)
+            w, gw = win[i], gwin[i]
+            o, og, _, tape = self._forward2(pts[i], None, p, hessian=False)
             so = _sigmoid(o)
-            r = 1.0 + win[i] * k * so - eta[i]
-            ob = 2.0 / len(i) * r * win[i] * k * so * (1 - so)
-            adam.step(p, self._reverse2(ob, np.zeros(len(i)), zeros[: len(i)], tape, p),
-                      lr_scale=0.1 ** (it / iterations))
+            g0 = k * so
+            g1 = g0 * (1 - so)
+            ob = 2.0 / len(i) * (1.0 + w * g0 - eta[i]) * w * g1
+            omb = np.zeros(len(i))
+            mu = np.zeros((len(i), 3))
+            if grad is not None:  # d|ge - target|^2 = 2 r . d ge, r held fixed
+                ge = g0[:, None] * gw + (w * g1)[:, None] * og
+                mu = 2.0 * scale**2 / len(i) * (ge - grad[i])
+                om = np.einsum("nd,nd->n", mu, og)
+                mw = np.einsum("nd,nd->n", mu, gw)
+                ob = ob + mw * g1 + w * g1 * (1 - 2 * so) * om
+                omb = w * g1
+            adam.step(p, self._reverse2(ob, omb, mu, tape, p), lr_scale=0.1 ** (it / iterations))
         self.set_data(p)
         err = np.concatenate(
             [self.eval(pts[a : a + _CHUNK])[0] - eta[a : a + _CHUNK] for a in range(0, len(pts), _CHUNK)]
