@@ -53,6 +53,18 @@ class Camera:
         return o, d
 
 
+IMAGE_SUFFIXES = (".exr", ".png", ".jpg", ".jpeg")
+
+
+def frame_stem(cam: Camera, k: int) -> str:
+    """File name without image extension for writing a render of a frame: 'r_000' from
+    './test/r_000' and from './test/r_000.exr' alike."""
+    name = Path(cam.file_path).name if cam.file_path else ""
+    if Path(name).suffix.lower() in IMAGE_SUFFIXES:
+        name = Path(name).stem
+    return name or cam.name or f"view_{k:03d}"
+
+
 def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """4x4 camera-to-world at `eye` looking at `target`, image up as close to `up` as possible."""
     eye = np.asarray(eye, dtype=np.float64)
@@ -118,7 +130,7 @@ def orbit_cameras(
 
 _INTRINSIC_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-_IMAGE_EXTS = ("", ".exr", ".png", ".jpg", ".jpeg")
+_IMAGE_EXTS = ("", *IMAGE_SUFFIXES)
 
 
 def _number(path: Path, where: str, key: str, value, positive: bool = False) -> float:

@@ -24,7 +24,8 @@ import numpy as np
 from .adam import Adam
 from .dataset import Dataset
 from .errors import ClrefractError
-from .imageio import atomic_path
+from .imageio import atomic_path, ensure_out_dir
+from .limits import check_fit_config
 from .loss import photometric_loss
 from .metrics import psnr_linear_batch
 from .progress import Progress
@@ -37,6 +38,8 @@ except ImportError:  # Python 3.10
 
 FIELDS = ("levelset", "voxel", "hashgrid")
 GRID_FIELDS = ("levelset", "voxel")  # fields on a node grid of `res` per axis
+# what a run folder holds that a new run would overwrite
+RUN_FILES = ("checkpoint.npz", "field.npz", "results.json", "start.json", "run.json")
 
 
 @dataclass
@@ -110,6 +113,7 @@ class FitConfig:
     def validate(self) -> None:
         if self.field not in FIELDS:
             raise ClrefractError(f"field must be one of {', '.join(FIELDS)}, got {self.field!r}")
+        check_fit_config(self)
         for name in ("iterations", "batch", "res", "queues"):
             if getattr(self, name) < 1:
                 raise ClrefractError(f"{name} must be at least 1, got {getattr(self, name)}")
@@ -794,11 +798,11 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
         if not (out / "config.toml").is_file():
             raise ClrefractError(f"{out}: no run to resume (config.toml missing)")
         cfg = load_config(out / "config.toml", {})
-    elif (out / "checkpoint.npz").exists():
+    elif any((out / name).exists() for name in RUN_FILES):
         raise ClrefractError(
             f"{out} already holds a run: use --resume to continue it, or another --out"
         )
-    out.mkdir(parents=True, exist_ok=True)
+    ensure_out_dir(out, "run folder")
     fit = Fit(dataset, out, cfg, stream=stream)
     if resume:
         fit.load_checkpoint()

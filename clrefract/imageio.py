@@ -40,6 +40,21 @@ def atomic_path(path: PathLike, suffix: str = "") -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
+def ensure_out_dir(path: PathLike, what: str = "output folder") -> Path:
+    """An output folder that exists and can be written, made if missing; refused in one line
+    when it is a file or read-only, before any work is done."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ClrefractError(f"{path}: {what} exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ClrefractError(f"{path}: cannot make the {what} ({e.strerror or e})") from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise ClrefractError(f"{path}: {what} is not writable")
+    return path
+
+
 def _rgb_channel_names(names: list[str]) -> tuple[str, str, str] | None:
     """R,G,B if present, else X.R,X.G,X.B for a single layer X (e.g. 'rgba.R')."""
     if {"R", "G", "B"} <= set(names):
