@@ -206,6 +206,9 @@ def _frame_camera(path: Path, top: dict, frame, k: int) -> Camera:
     # Per-frame intrinsics override the top-level ones.
     p = {key: top[key] for key in _INTRINSIC_KEYS + _DISTORTION_KEYS if key in top}
     p.update({key: frame[key] for key in _INTRINSIC_KEYS + _DISTORTION_KEYS if key in frame})
+    for key in _INTRINSIC_KEYS:  # even those another key overrides: garbage is a mistake
+        if key in p:
+            _number(path, where, key, p[key])
     for key in _DISTORTION_KEYS:
         if key in p and _number(path, where, key, p[key]) != 0.0:
             raise ClrefractError(f"{path}: {where}lens distortion '{key}' is not supported")
@@ -254,7 +257,26 @@ def load_transforms(path: PathLike) -> list[Camera]:
         raise ClrefractError(f"{path}: missing 'frames' list")
     if not frames:
         raise ClrefractError(f"{path}: 'frames' is empty")
-    return [_frame_camera(path, top, fr, k) for k, fr in enumerate(frames)]
+    cams = [_frame_camera(path, top, fr, k) for k, fr in enumerate(frames)]
+    _refuse_duplicates(path, cams)
+    return cams
+
+
+def _refuse_duplicates(path: Path, cams: list[Camera]) -> None:
+    """Two frames of one image would be weighted twice, and their renders overwrite each
+    other."""
+    seen: dict[str, int] = {}
+    for k, cam in enumerate(cams):
+        if not cam.file_path:
+            continue
+        key = str(Path(cam.file_path))
+        if Path(key).suffix.lower() in IMAGE_SUFFIXES:
+            key = str(Path(key).with_suffix(""))
+        if key in seen:
+            raise ClrefractError(
+                f"{path}: frames[{k}] repeats the image of frames[{seen[key]}] ({cam.file_path!r})"
+            )
+        seen[key] = k
 
 
 def _intrinsics(cam: Camera) -> dict:

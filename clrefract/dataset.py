@@ -22,6 +22,7 @@ from .envmap import EnvMap
 from .errors import ClrefractError
 from .fields.base import Box
 from .imageio import atomic_path, read_exr_rgb
+from .limits import check_training_rays
 
 SCENE_FILE = "scene.json"
 FORMAT = "clrefract-dataset"
@@ -59,6 +60,17 @@ def write_scene(root: Path, scene: Scene) -> None:
         tmp.write_text(json.dumps(scene.to_dict(), indent=2) + "\n")
 
 
+def _numbers(value, n: int) -> bool:
+    """Whether value is a list of n finite numbers (JSON true/false are not numbers)."""
+    return (
+        isinstance(value, list | tuple)
+        and len(value) == n
+        and all(
+            isinstance(x, int | float) and not isinstance(x, bool) and np.isfinite(x) for x in value
+        )
+    )
+
+
 def read_scene(root: Path) -> Scene:
     path = Path(root) / SCENE_FILE
     if not path.is_file():
@@ -71,9 +83,10 @@ def read_scene(root: Path) -> Scene:
         raise ClrefractError(f"{path}: top level must be a JSON object")
     try:
         box = Box.from_dict(d["box"]) if "box" in d else Box()
-        eta = tuple(float(x) for x in d.get("eta_range", (1.0, 1.6)))
-        if len(eta) != 2 or not 1.0 <= eta[0] < eta[1]:
-            raise ValueError(f"eta_range must be [lo, hi] with 1 <= lo < hi, got {eta}")
+        eta = d.get("eta_range", (1.0, 1.6))
+        if not _numbers(eta, 2) or not 1.0 <= eta[0] < eta[1]:
+            raise ValueError(f"eta_range must be [lo, hi] with 1 <= lo < hi, got {eta!r}")
+        eta = (float(eta[0]), float(eta[1]))
     except (KeyError, TypeError, ValueError, ClrefractError) as exc:
         raise ClrefractError(f"{path}: bad scene description ({exc})") from None
     known = {
@@ -103,6 +116,28 @@ def read_scene(root: Path) -> Scene:
 def frame_image_path(root: Path, cam: Camera) -> Path:
     p = Path(root) / cam.file_path
     return p if p.suffix.lower() == ".exr" else p.with_name(p.name + ".exr")
+
+
+def sees_box(cam: Camera, box: Box) -> bool:
+    """Whether any part of the box can be in the camera's image: the box of the projected
+    corners overlaps the image (a box that straddles the camera's plane counts as seen)."""
+    corners = np.array(
+        [
+            [x, y, z]
+            for x in (box.lo[0], box.hi[0])
+            for y in (box.lo[1], box.hi[1])
+            for z in (box.lo[2], box.hi[2])
+        ]
+    )
+    p = (corners - cam.c2w[:3, 3]) @ cam.c2w[:3, :3]  # camera axes: looks down -z
+    depth = -p[:, 2]
+    if np.all(depth <= 0):
+        return False
+    if np.any(depth <= 0):
+        return True
+    u = cam.cx + cam.fl_x * p[:, 0] / depth
+    v = cam.cy - cam.fl_y * p[:, 1] / depth
+    return bool(u.max() > 0 and u.min() < cam.width and v.max() > 0 and v.min() < cam.height)
 
 
 class Dataset:
@@ -138,6 +173,15 @@ class Dataset:
     def rays_and_pixels(self, split: str = "train"):
         """All rays of a split with their target radiance: origins, dirs (n, 3), rgb (n, 3)."""
         cams = self.train if split == "train" else self.test
+        source = self.root / (self.scene.train if split == "train" else self.scene.test)
+        for k, cam in enumerate(cams):
+            if not sees_box(cam, self.box):
+                raise ClrefractError(
+                    f"{source}: frame {k} ({cam.file_path or cam.name}) does not see the "
+                    f"object's box {list(self.box.lo)}..{list(self.box.hi)} mm (wrong poses, "
+                    "units or box?)"
+                )
+        check_training_rays(str(source), sum(c.width * c.height for c in cams))
         os_, ds, px = [], [], []
         for cam in cams:
             o, d = cam.rays()
@@ -177,6 +221,8 @@ def check_dataset(root) -> list[str]:
             t = max(float((centre - c) @ fwd), 0.0)
             if np.linalg.norm(c + t * fwd - centre) > half:
                 problems.append(f"{where}: camera does not look at the box")
+            elif not sees_box(cam, scene.box):
+                problems.append(f"{where}: camera does not see the box at all")
             if np.all((c > lo) & (c < hi)):
                 problems.append(f"{where}: camera is inside the box")
             path = frame_image_path(root, cam)

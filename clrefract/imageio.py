@@ -50,8 +50,12 @@ def ensure_out_dir(path: PathLike, what: str = "output folder") -> Path:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise ClrefractError(f"{path}: cannot make the {what} ({e.strerror or e})") from None
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise ClrefractError(f"{path}: {what} is not writable")
+    try:  # a real write: access() says yes to root on any folder, even a read-only mount
+        fd, probe = tempfile.mkstemp(prefix=".clrefract-probe.", dir=path)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise ClrefractError(f"{path}: {what} is not writable ({e.strerror or e})") from None
     return path
 
 

@@ -58,12 +58,12 @@ def check_count(what: str, value, lo: int = 1, hi: int = INT32_MAX) -> int:
 def check_image_size(what: str, width: int, height: int, views: int = 1) -> None:
     """Views of width x height pixels, each traced as one launch of that many rays."""
     pixels = int(width) * int(height)
+    check_memory(f"{what}: a {width}x{height} view", pixels * RENDER_BYTES_PER_PIXEL)
     if pixels > INT32_MAX:
         raise ClrefractError(
             f"{what}: a {width}x{height} view has {pixels} pixels, more than the "
             f"{INT32_MAX} rays one launch can trace"
         )
-    check_memory(f"{what}: a {width}x{height} view", pixels * RENDER_BYTES_PER_PIXEL)
     if views < 1:
         raise ClrefractError(f"{what}: need at least one view, got {views}")
 
@@ -89,7 +89,7 @@ def max_steps_for(step: float, diagonal: float) -> int:
 
 def check_grid(what: str, res: int, copies: int = FIT_COPIES_PER_PARAM) -> None:
     """A res^3 grid of float64 values, held `copies` times."""
-    check_count(what, res, 2, 4096)
+    check_count(what, res, 2, 65536)
     check_memory(f"{what} {res}: a {res}^3 grid", float(res) ** 3 * 8 * copies)
 
 

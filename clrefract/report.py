@@ -190,11 +190,12 @@ def surface_chamfer(field, ds, eval_fn=None) -> float | None:
     gt = ds.root / ds.scene.ground_truth.get("surface", "gt_surface.ply")
     if not gt.is_file():
         return None
+    truth = read_mesh(gt)  # first: a bad file is reported even when there is no surface
     level = 1 + (ds.scene.eta_range[1] - 1) / 2
     mesh = eta_surface(field, ds.box, level, eval_fn=eval_fn)
     if mesh is None:
         return float("inf")
-    return chamfer_distance(mesh, read_mesh(gt))
+    return chamfer_distance(mesh, truth)
 
 
 def write_start_report(fit, seconds: float) -> dict:
