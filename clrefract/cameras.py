@@ -26,6 +26,8 @@ class Camera:
     c2w: np.ndarray = field(repr=False)
     name: str = ""
     file_path: str = ""
+    exposure: float = 1.0  # linear radiance = decoded pixel value * exposure
+    mask_path: str = ""  # the user's object mask (white: object), relative to the JSON
 
     def __post_init__(self):
         self.c2w = np.array(self.c2w, dtype=np.float64)
@@ -234,7 +236,24 @@ def _frame_camera(path: Path, top: dict, frame, k: int) -> Camera:
     cx = _number(path, where, "cx", p["cx"]) if "cx" in p else w / 2.0
     cy = _number(path, where, "cy", p["cy"]) if "cy" in p else h / 2.0
     name = Path(file_path).name if file_path else f"frame_{k:03d}"
-    return Camera(w, h, fl_x, fl_y, cx, cy, c2w, name=name, file_path=file_path)
+    exposure = frame.get("exposure_scale", top.get("exposure_scale", 1.0))
+    exposure = _number(path, where, "exposure_scale", exposure, positive=True)
+    mask_path = frame.get("mask_path", "")
+    if not isinstance(mask_path, str):
+        raise ClrefractError(f"{path}: {where}'mask_path' must be a string")
+    return Camera(
+        w,
+        h,
+        fl_x,
+        fl_y,
+        cx,
+        cy,
+        c2w,
+        name=name,
+        file_path=file_path,
+        exposure=exposure,
+        mask_path=mask_path,
+    )
 
 
 def load_transforms(path: PathLike) -> list[Camera]:
@@ -307,6 +326,10 @@ def save_transforms(path: PathLike, cameras: list[Camera], extra: dict | None = 
             "file_path": cam.file_path or cam.name or f"frame_{k:03d}",
             "transform_matrix": cam.c2w.tolist(),
         }
+        if cam.exposure != 1.0:
+            fr["exposure_scale"] = cam.exposure
+        if cam.mask_path:
+            fr["mask_path"] = cam.mask_path
         intr = _intrinsics(cam)
         # Only cameras that differ from the first carry their own intrinsics.
         if any(intr[key] != top[key] for key in intr):

@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import Camera, load_transforms
+from .cameras import IMAGE_SUFFIXES, Camera, load_transforms
 from .envmap import EnvMap
 from .errors import ClrefractError
 from .fields.base import Box
-from .imageio import atomic_path, read_exr_rgb
+from .imageio import atomic_path, read_frame
 from .limits import check_training_rays
 
 SCENE_FILE = "scene.json"
@@ -113,9 +113,41 @@ def read_scene(root: Path) -> Scene:
     )
 
 
-def frame_image_path(root: Path, cam: Camera) -> Path:
+def frame_suffix(root: Path, cams: list[Camera]) -> str:
+    """The image type of frames named without one ('./train/r_0'): that of the first such
+    frame on disk, EXR before PNG and JPEG (clrefract's own datasets keep PNG previews beside
+    their EXR frames), and one type for all, so that a missing EXR is reported rather than
+    replaced by its preview."""
+    for cam in cams:
+        p = Path(root) / cam.file_path
+        if cam.file_path and p.suffix.lower() not in IMAGE_SUFFIXES:
+            for suffix in IMAGE_SUFFIXES:
+                if p.with_name(p.name + suffix).is_file():
+                    return suffix
+            break
+    return ".exr"
+
+
+def frame_image_path(root: Path, cam: Camera, suffix: str = ".exr") -> Path:
     p = Path(root) / cam.file_path
-    return p if p.suffix.lower() == ".exr" else p.with_name(p.name + ".exr")
+    return p if p.suffix.lower() in IMAGE_SUFFIXES else p.with_name(p.name + suffix)
+
+
+def read_frame_image(path: Path, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's linear image (times its exposure) and the loss weight of each pixel (0 where
+    the photograph clipped: its radiance is unknown), checked against its camera."""
+    img, clipped = read_frame(path)
+    if img.shape[:2] != (cam.height, cam.width):
+        raise ClrefractError(
+            f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
+            f"camera says {cam.width}x{cam.height}"
+        )
+    if not np.isfinite(img).all():
+        raise ClrefractError(f"{path}: image has NaN or infinite pixels")
+    weight = np.ones(img.shape[:2], np.float32)
+    if clipped is not None:
+        weight[clipped] = 0.0
+    return img * np.float32(cam.exposure), weight
 
 
 def sees_box(cam: Camera, box: Box) -> bool:
@@ -150,6 +182,8 @@ class Dataset:
         self.scene = read_scene(self.root)
         self.train = load_transforms(self.root / self.scene.train)
         self.test = load_transforms(self.root / self.scene.test)
+        self.suffix = frame_suffix(self.root, self.train + self.test)
+        self._weights: dict[str, np.ndarray] = {}
 
     @property
     def box(self) -> Box:
@@ -158,17 +192,19 @@ class Dataset:
     def envmap(self) -> EnvMap:
         return EnvMap.from_exr(self.root / self.scene.envmap)
 
+    def frame(self, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """Linear image (H, W, 3) and per-pixel loss weights (H, W) of a frame."""
+        return read_frame_image(frame_image_path(self.root, cam, self.suffix), cam)
+
     def image(self, cam: Camera) -> np.ndarray:
-        path = frame_image_path(self.root, cam)
-        img = read_exr_rgb(path)
-        if img.shape[:2] != (cam.height, cam.width):
-            raise ClrefractError(
-                f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
-                f"camera says {cam.width}x{cam.height}"
-            )
-        if not np.isfinite(img).all():
-            raise ClrefractError(f"{path}: image has NaN or infinite pixels")
-        return img
+        return self.frame(cam)[0]
+
+    def pixel_weights(self, split: str = "train") -> np.ndarray:
+        """Loss weights (n,) of a split's pixels in the order of rays_and_pixels: 0 where a
+        photograph clipped."""
+        if split not in self._weights:
+            self.rays_and_pixels(split)
+        return self._weights[split]
 
     def rays_and_pixels(self, split: str = "train"):
         """All rays of a split with their target radiance: origins, dirs (n, 3), rgb (n, 3)."""
@@ -182,12 +218,15 @@ class Dataset:
                     "units or box?)"
                 )
         check_training_rays(str(source), sum(c.width * c.height for c in cams))
-        os_, ds, px = [], [], []
+        os_, ds, px, wt = [], [], [], []
         for cam in cams:
             o, d = cam.rays()
             os_.append(o)
             ds.append(d)
-            px.append(self.image(cam).reshape(-1, 3))
+            img, weight = self.frame(cam)
+            px.append(img.reshape(-1, 3))
+            wt.append(weight.ravel())
+        self._weights[split] = np.concatenate(wt).astype(np.float64)
         return np.concatenate(os_), np.concatenate(ds), np.concatenate(px).astype(np.float64)
 
 
@@ -213,6 +252,7 @@ def check_dataset(root) -> list[str]:
         except ClrefractError as exc:
             problems.append(str(exc))
             continue
+        suffix = frame_suffix(root, cams)
         for k, cam in enumerate(cams):
             where = f"{root / split}: frame {k} ({cam.file_path or 'no file_path'})"
             # the view ray through the image centre must pass near the box
@@ -225,12 +265,12 @@ def check_dataset(root) -> list[str]:
                 problems.append(f"{where}: camera does not see the box at all")
             if np.all((c > lo) & (c < hi)):
                 problems.append(f"{where}: camera is inside the box")
-            path = frame_image_path(root, cam)
+            path = frame_image_path(root, cam, suffix)
             if not path.is_file():
                 problems.append(f"{where}: image {path} is missing")
                 continue
             try:
-                img = read_exr_rgb(path)
+                img = read_frame(path)[0]
             except ClrefractError as exc:
                 problems.append(str(exc))
                 continue

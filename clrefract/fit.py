@@ -236,6 +236,7 @@ class Fit:
         self.box = self.ds.box
         self.eta_max = cfg.eta_max or self.ds.scene.eta_range[1] * 1.05
         self.origins, self.dirs, self.rgb = self.ds.rays_and_pixels("train")
+        self.weights = self.ds.pixel_weights("train")  # 0 where a photograph clipped
         self._env_full = self.ds.envmap()
         self._env_cache: dict[float, tuple] = {}
         self.it = 0
@@ -626,7 +627,7 @@ class Fit:
         """Loss of the current field on training rays idx, against the sharp environment
         (forward pass only)."""
         r = self.engine.tracer.trace(self.origins[idx], self.dirs[idx])
-        ok = (r.status == 0).astype(float)
+        ok = (r.status == 0) * self.weights[idx]
         return float(
             photometric_loss(self._env_full, r.direction, self.rgb[idx], ok, self.cfg.loss)[0]
         )
@@ -660,7 +661,7 @@ class Fit:
         t0 = time.perf_counter()
         targets = self.targets_at(self.it)
         r = self.engine.loss_and_grad(
-            self.origins[idx], self.dirs[idx], targets[idx], self.env_at(self.it)
+            self.origins[idx], self.dirs[idx], targets[idx], self.env_at(self.it), self.weights[idx]
         )
         reg, greg = self.field.regularizer(self.params)
         grad = r.grad + self.cfg.reg * greg

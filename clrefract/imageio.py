@@ -93,6 +93,46 @@ def read_exr_rgb(path: PathLike) -> np.ndarray:
     return np.ascontiguousarray(np.stack(planes, axis=-1), dtype=np.float32)
 
 
+PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
+# an 8-bit value at or above this clipped in the camera: its radiance is unknown
+SATURATED = 254 / 255
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """Inverse of the sRGB OETF for encoded values in [0, 1]; float32 out."""
+    x = np.asarray(x, dtype=np.float32)
+    hi = np.power((x + 0.055) / 1.055, 2.4, dtype=np.float32)
+    return np.where(x <= 0.04045, x / 12.92, hi).astype(np.float32)
+
+
+def read_photo_rgb(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Linear RGB (H, W, 3) float32 of an sRGB PNG or JPEG (8 or 16 bits, grey or colour,
+    alpha ignored), and the (H, W) bool map of pixels clipped in some channel."""
+    path = Path(path)
+    if not path.is_file():
+        raise ClrefractError(f"{path}: image file not found")
+    try:
+        raw = np.asarray(iio.imread(path, plugin="pillow"))
+    except Exception:  # imageio's messages suggest plugins to install; not useful here
+        raise ClrefractError(f"{path}: not a readable PNG or JPEG image") from None
+    if raw.dtype not in (np.uint8, np.uint16) or raw.ndim not in (2, 3):
+        raise ClrefractError(f"{path}: unsupported image layout {raw.shape} of {raw.dtype}")
+    if raw.ndim == 2:
+        raw = raw[:, :, None]
+    rgb = raw[:, :, :3] if raw.shape[2] >= 3 else np.repeat(raw[:, :, :1], 3, axis=2)
+    encoded = rgb.astype(np.float32) / float(np.iinfo(raw.dtype).max)
+    saturated = (encoded >= SATURATED - 1e-6).any(axis=2)
+    return srgb_to_linear(encoded), saturated
+
+
+def read_frame(path: PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """A training or test frame: linear RGB, and the clipped-pixel map (None for EXR, whose
+    values are radiance and never clip at a known level)."""
+    if Path(path).suffix.lower() in PHOTO_SUFFIXES:
+        return read_photo_rgb(path)
+    return read_exr_rgb(path), None
+
+
 def write_exr_rgb(path: PathLike, img: np.ndarray, half: bool = False) -> None:
     """Write (H, W, 3) linear RGB as a ZIP-compressed EXR, float32 (or half), atomically."""
     img = np.asarray(img)
