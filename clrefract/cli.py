@@ -230,7 +230,10 @@ def _cmd_dataset_make(args) -> int:
 def _cmd_dataset_check(args) -> int:
     from .dataset import check_dataset
 
-    problems = check_dataset(Path(args.dir))
+    notes: list[str] = []
+    problems = check_dataset(Path(args.dir), notes)
+    for n in notes:
+        print(f"{args.dir}: {n}")
     for p in problems:
         print(p)
     print(f"{args.dir}: {'OK' if not problems else f'{len(problems)} problem(s)'}")

@@ -28,23 +28,34 @@ SCENE_FILE = "scene.json"
 FORMAT = "clrefract-dataset"
 
 
+# scene.json, every key optional (README, "Bringing your own capture"):
+DEFAULT_ETA_RANGE = (1.0, 1.6)  # glass and water lie inside
+DEFAULT_MARGIN = 4.0  # mm; at most a tenth of the box's smallest side
+DEFAULT_HOLDOUT = 8  # one transforms file: every 8th frame is a test view
+TRAIN_FILES = ("transforms_train.json", "transforms.json")
+TEST_FILE = "transforms_test.json"
+
+
 @dataclass
 class Scene:
-    box: Box
+    box: Box | None  # None: the region the cameras all look at (Dataset fills it in)
     eta_range: tuple[float, float]
     object: dict | None = None  # the analytic object of a synthetic scene
     envmap: str = "envmap.exr"
     train: str = "transforms_train.json"
-    test: str = "transforms_test.json"
+    test: str = "transforms_test.json"  # the train file itself: every holdout_every-th frame
     ground_truth: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
+    frames: str = ""  # image type of frames named without one; "": the type found on disk
+    holdout_every: int = DEFAULT_HOLDOUT
+    assumed: list[str] = field(default_factory=list)  # keys taken by default, in words
 
     def to_dict(self) -> dict:
-        return {
+        d = {
             "format": FORMAT,
             "version": 1,
             "units": "mm",
-            "box": self.box.to_dict(),
+            "box": self.box.to_dict() if self.box is not None else None,
             "eta_range": list(self.eta_range),
             "object": self.object,
             "envmap": self.envmap,
@@ -53,6 +64,13 @@ class Scene:
             "ground_truth": self.ground_truth,
             **self.extra,
         }
+        if d["box"] is None:
+            del d["box"]
+        if self.frames:
+            d["frames"] = self.frames
+        if self.test == self.train:
+            d["holdout_every"] = self.holdout_every
+        return d
 
 
 def write_scene(root: Path, scene: Scene) -> None:
@@ -71,46 +89,152 @@ def _numbers(value, n: int) -> bool:
     )
 
 
-def read_scene(root: Path) -> Scene:
-    path = Path(root) / SCENE_FILE
-    if not path.is_file():
-        raise ClrefractError(f"{path}: scene file not found (is {root} a clrefract dataset?)")
+def default_margin(lo, hi) -> float:
+    return float(min(DEFAULT_MARGIN, np.min(np.asarray(hi) - np.asarray(lo)) / 10))
+
+
+def _box(path: Path, d) -> Box:
+    if not isinstance(d, dict):
+        raise ClrefractError(f"{path}: 'box' must be an object with 'lo', 'hi' and 'margin'")
+    for key, words in (("lo", "lowest"), ("hi", "highest")):
+        if key not in d:
+            raise ClrefractError(
+                f"{path}: 'box' needs '{key}', its {words} corner [x, y, z] in mm (or leave "
+                "out 'box' to take it from the cameras)"
+            )
+        if not _numbers(d[key], 3):
+            raise ClrefractError(f"{path}: box '{key}' must be 3 numbers (mm), got {d[key]!r}")
+    margin = d.get("margin", default_margin(d["lo"], d["hi"]))
+    if not _numbers([margin], 1):
+        raise ClrefractError(f"{path}: box 'margin' must be a number of mm, got {margin!r}")
+    try:
+        return Box(tuple(map(float, d["lo"])), tuple(map(float, d["hi"])), float(margin))
+    except ClrefractError as exc:
+        raise ClrefractError(f"{path}: {exc}") from None
+
+
+def _string(path: Path, d: dict, key: str, default: str) -> str:
+    v = d.get(key, default)
+    if not isinstance(v, str) or not v:
+        raise ClrefractError(f"{path}: '{key}' must be a file name, got {v!r}")
+    return v
+
+
+def _load_scene_file(path: Path) -> dict:
     try:
         d = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ClrefractError(f"{path}: cannot read scene file ({exc})") from None
     if not isinstance(d, dict):
         raise ClrefractError(f"{path}: top level must be a JSON object")
-    try:
-        box = Box.from_dict(d["box"]) if "box" in d else Box()
-        eta = d.get("eta_range", (1.0, 1.6))
-        if not _numbers(eta, 2) or not 1.0 <= eta[0] < eta[1]:
-            raise ValueError(f"eta_range must be [lo, hi] with 1 <= lo < hi, got {eta!r}")
-        eta = (float(eta[0]), float(eta[1]))
-    except (KeyError, TypeError, ValueError, ClrefractError) as exc:
-        raise ClrefractError(f"{path}: bad scene description ({exc})") from None
-    known = {
-        "format",
-        "version",
-        "units",
-        "box",
-        "eta_range",
-        "object",
-        "envmap",
-        "train",
-        "test",
-        "ground_truth",
-    }
+    return d
+
+
+def _transforms_files(root: Path, d: dict, path: Path, assumed: list[str]) -> tuple[str, str]:
+    if "train" in d:
+        train = _string(path, d, "train", "")
+    else:
+        train = next((f for f in TRAIN_FILES if (root / f).is_file()), TRAIN_FILES[0])
+        assumed.append(f"train: cameras from {train}")
+    if "test" in d:
+        test = _string(path, d, "test", "")
+    elif (root / TEST_FILE).is_file() or train == TRAIN_FILES[0]:
+        test = TEST_FILE
+        assumed.append(f"test: cameras from {test}")
+    else:
+        test = train
+        assumed.append(f"test: every {DEFAULT_HOLDOUT}th frame of {train} held out")
+    return train, test
+
+
+def read_scene(root: Path) -> Scene:
+    """The scene of a dataset folder: scene.json where there is one, defaults for every key
+    it lacks (or for all, without one), listed in words in Scene.assumed."""
+    root = Path(root)
+    path = root / SCENE_FILE
+    d = _load_scene_file(path) if path.is_file() else {}
+    assumed: list[str] = [] if path.is_file() else [f"no {SCENE_FILE}: every key by default"]
+    units = d.get("units", "mm")
+    if units != "mm":
+        raise ClrefractError(
+            f'{path}: units must be "mm", got {units!r} (`clrefract dataset import --scale` '
+            "converts a capture to millimetres)"
+        )
+    box = _box(path, d["box"]) if "box" in d else None
+    if box is None:
+        assumed.append("box: the region all cameras look at")
+    elif "margin" not in d["box"]:
+        assumed.append(f"box margin: {box.margin:g} mm")
+    eta = d.get("eta_range", DEFAULT_ETA_RANGE)
+    if not _numbers(eta, 2) or not 1.0 <= eta[0] < eta[1]:
+        raise ClrefractError(
+            f"{path}: 'eta_range' must be [lo, hi], numbers with 1 <= lo < hi, got {eta!r}"
+        )
+    if "eta_range" not in d:
+        assumed.append(f"eta_range: {list(DEFAULT_ETA_RANGE)}")
+    envmap = _string(path, d, "envmap", "envmap.exr")
+    if "envmap" not in d:
+        assumed.append("envmap: envmap.exr")
+    train, test = _transforms_files(root, d, path, assumed)
+    holdout = d.get("holdout_every", DEFAULT_HOLDOUT)
+    if isinstance(holdout, bool) or not isinstance(holdout, int) or holdout < 2:
+        raise ClrefractError(f"{path}: 'holdout_every' must be a whole number >= 2")
+    frames = d.get("frames", ".exr" if d.get("format") == FORMAT else "")
+    if frames and frames not in IMAGE_SUFFIXES:
+        raise ClrefractError(f"{path}: 'frames' must be one of {', '.join(IMAGE_SUFFIXES)}")
+    gt = d.get("ground_truth", {}) or {}
+    if not isinstance(gt, dict):
+        raise ClrefractError(f"{path}: 'ground_truth' must be an object")
+    known = {"format", "version", "units", "box", "eta_range", "object", "envmap", "train"}
+    known |= {"test", "ground_truth", "frames", "holdout_every"}
     return Scene(
         box=box,
-        eta_range=eta,
+        eta_range=(float(eta[0]), float(eta[1])),
         object=d.get("object"),
-        envmap=d.get("envmap", "envmap.exr"),
-        train=d.get("train", "transforms_train.json"),
-        test=d.get("test", "transforms_test.json"),
-        ground_truth=d.get("ground_truth", {}) or {},
+        envmap=envmap,
+        train=train,
+        test=test,
+        ground_truth=gt,
         extra={k: v for k, v in d.items() if k not in known},
+        frames=frames,
+        holdout_every=holdout,
+        assumed=assumed,
     )
+
+
+def box_from_cameras(cams: list[Camera], where: str) -> Box:
+    """The region every camera looks at: centred on the point nearest all optical axes, as
+    wide as the narrowest view is there (so the whole box is in every image)."""
+    eye = np.array([c.c2w[:3, 3] for c in cams])
+    fwd = np.array([-c.c2w[:3, 2] / np.linalg.norm(c.c2w[:3, 2]) for c in cams])
+    proj = np.eye(3)[None] - fwd[:, :, None] * fwd[:, None, :]  # off-axis part, per camera
+    a, b = proj.sum(0), np.einsum("nij,nj->i", proj, eye)
+    if len(cams) < 2 or np.linalg.cond(a) > 1e8:
+        raise ClrefractError(
+            f"{where}: the cameras do not look at one common point (parallel views?); give "
+            "the object's box in scene.json"
+        )
+    centre = np.linalg.solve(a, b)
+    depth = np.einsum("ni,ni->n", centre - eye, fwd)
+    if np.any(depth <= 0):
+        k = int(np.argmin(depth))
+        raise ClrefractError(
+            f"{where}: frame {k} ({cams[k].file_path or cams[k].name}) looks away from the "
+            "point the other cameras look at; give the object's box in scene.json"
+        )
+    tan_half = np.array([min(c.width / 2 / c.fl_x, c.height / 2 / c.fl_y) for c in cams])
+    half = float(np.min(depth * tan_half)) / np.sqrt(3)  # the box's corners stay in view
+    lo, hi = centre - half, centre + half
+    return Box(tuple(lo), tuple(hi), default_margin(lo, hi))
+
+
+def load_cameras(root: Path, scene: Scene) -> tuple[list[Camera], list[Camera]]:
+    """Training and test cameras of a scene; one transforms file is split by holdout."""
+    train = load_transforms(root / scene.train)
+    if scene.test != scene.train:
+        return train, load_transforms(root / scene.test)
+    k = scene.holdout_every
+    return [c for i, c in enumerate(train) if i % k], train[::k]
 
 
 def frame_suffix(root: Path, cams: list[Camera]) -> str:
@@ -180,9 +304,10 @@ class Dataset:
         if not self.root.is_dir():
             raise ClrefractError(f"{self.root}: dataset folder not found")
         self.scene = read_scene(self.root)
-        self.train = load_transforms(self.root / self.scene.train)
-        self.test = load_transforms(self.root / self.scene.test)
-        self.suffix = frame_suffix(self.root, self.train + self.test)
+        self.train, self.test = load_cameras(self.root, self.scene)
+        if self.scene.box is None:
+            self.scene.box = box_from_cameras(self.train + self.test, str(self.root))
+        self.suffix = self.scene.frames or frame_suffix(self.root, self.train + self.test)
         self._weights: dict[str, np.ndarray] = {}
 
     @property
@@ -230,29 +355,61 @@ class Dataset:
         return np.concatenate(os_), np.concatenate(ds), np.concatenate(px).astype(np.float64)
 
 
-def check_dataset(root) -> list[str]:
-    """Every problem found in a dataset folder, as messages naming the file (empty: fine)."""
+def _splits(root: Path, scene: Scene, problems: list[str]) -> list[tuple[str, list[Camera]]]:
+    """(transforms file, cameras) of each split that could be read; the others' problems."""
+    loaded = {}
+    for name in dict.fromkeys([scene.train, scene.test]):
+        try:
+            loaded[name] = load_transforms(root / name)
+        except ClrefractError as exc:
+            problems.append(str(exc))
+    if scene.train == scene.test and scene.train in loaded:
+        train, test = load_cameras(root, scene)
+        return [(scene.train, train), (scene.test, test)]
+    return [(name, loaded[name]) for name in (scene.train, scene.test) if name in loaded]
+
+
+def _describe_box(scene: Scene, cams: list[Camera], root: Path, notes: list[str]) -> None:
+    """Fill in a box taken from the cameras, saying so, and doubt one too small for mm."""
+    if scene.box is None:
+        scene.box = box_from_cameras(cams, str(root))
+        lo = ", ".join(f"{x:.4g}" for x in scene.box.lo)
+        hi = ", ".join(f"{x:.4g}" for x in scene.box.hi)
+        notes.append(f"box from the cameras: [{lo}] to [{hi}] mm, margin {scene.box.margin:.3g}")
+    size = float(np.min(scene.box.size))
+    if size < 10:
+        notes.append(
+            f"the box is only {size:.3g} mm across: are the camera poses in millimetres? "
+            "(`clrefract dataset import --scale` converts them)"
+        )
+
+
+def check_dataset(root, notes: list[str] | None = None) -> list[str]:
+    """Every problem found in a dataset folder, as messages naming the file (empty: fine).
+    `notes` receives what was assumed for lack of a scene.json or of some of its keys."""
     root = Path(root)
     problems: list[str] = []
+    notes = [] if notes is None else notes
     if not root.is_dir():
         return [f"{root}: dataset folder not found"]
     try:
         scene = read_scene(root)
     except ClrefractError as exc:
         return [str(exc)]
+    notes.extend(f"assumed {a}" for a in scene.assumed)
     try:
         EnvMap.from_exr(root / scene.envmap)
     except ClrefractError as exc:
         problems.append(str(exc))
+    splits = _splits(root, scene, problems)
+    try:
+        _describe_box(scene, [c for _, cams in splits for c in cams], root, notes)
+    except ClrefractError as exc:
+        return problems + [str(exc)]
     lo, hi = np.asarray(scene.box.lo), np.asarray(scene.box.hi)
     centre, half = (lo + hi) / 2, np.linalg.norm(hi - lo) / 2
-    for split in (scene.train, scene.test):
-        try:
-            cams = load_transforms(root / split)
-        except ClrefractError as exc:
-            problems.append(str(exc))
-            continue
-        suffix = frame_suffix(root, cams)
+    for split, cams in splits:
+        suffix = scene.frames or frame_suffix(root, cams)
         for k, cam in enumerate(cams):
             where = f"{root / split}: frame {k} ({cam.file_path or 'no file_path'})"
             # the view ray through the image centre must pass near the box
