@@ -1,6 +1,6 @@
 """clrefract: recover index-of-refraction fields from photographs through curved rays.
 
-Commands: devices, render, dataset make, dataset check, fit."""
+Commands: devices, render, dataset make, dataset import, dataset check, fit."""
 
 from __future__ import annotations
 
@@ -227,6 +227,21 @@ def _cmd_dataset_make(args) -> int:
     return 0
 
 
+def _cmd_dataset_import(args) -> int:
+    from .importer import import_capture
+
+    info = import_capture(
+        Path(args.src),
+        Path(args.out),
+        scale=args.scale,
+        box=args.box,
+        eta_range=tuple(args.eta_range),
+        envmap=Path(args.envmap) if args.envmap else None,
+    )
+    print(json.dumps(info, indent=2))
+    return 0
+
+
 def _cmd_dataset_check(args) -> int:
     from .dataset import check_dataset
 
@@ -374,6 +389,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--env-width", type=int, default=2048, help="procedural map width")
     p.add_argument("--device", default=None)
     p.set_defaults(func=_cmd_dataset_make)
+    p = ds.add_parser(
+        "import", help="make a dataset folder from a NeRF-synthetic or instant-ngp capture"
+    )
+    p.add_argument("src", help="capture folder (or its transforms.json)")
+    p.add_argument("--out", required=True, help="dataset folder to write")
+    p.add_argument(
+        "--scale", type=float, default=1.0, help="millimetres per unit of the camera poses"
+    )
+    p.add_argument(
+        "--box",
+        type=float,
+        nargs=6,
+        metavar=("XLO", "YLO", "ZLO", "XHI", "YHI", "ZHI"),
+        help="the object's box in the poses' units (default: the region the cameras look at)",
+    )
+    p.add_argument("--eta-range", type=float, nargs=2, default=[1.0, 1.6], metavar=("LO", "HI"))
+    p.add_argument("--envmap", help="equirectangular HDR EXR (default: SRC/envmap.exr)")
+    p.set_defaults(func=_cmd_dataset_import)
     p = ds.add_parser("check", help="validate a dataset folder and name every problem")
     p.add_argument("dir")
     p.set_defaults(func=_cmd_dataset_check)
