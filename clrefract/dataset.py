@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import IMAGE_SUFFIXES, Camera, load_transforms
+from .cameras import IMAGE_SUFFIXES, Camera, frame_stem, load_transforms
 from .envmap import EnvMap
 from .errors import ClrefractError
 from .fields.base import Box
@@ -296,6 +296,31 @@ def sees_box(cam: Camera, box: Box) -> bool:
     return bool(u.max() > 0 and u.min() < cam.width and v.max() > 0 and v.min() < cam.height)
 
 
+MASK_DIR = "masks"
+
+
+def read_mask(path: Path, cam: Camera) -> np.ndarray:
+    """A mask image as (H, W) bool: above half grey in its first channel, or where its alpha
+    channel (if it varies) is above half."""
+    import imageio.v3 as iio
+
+    if not path.is_file():
+        raise ClrefractError(f"{path}: mask file not found")
+    try:
+        raw = np.asarray(iio.imread(path, plugin="pillow"))
+    except Exception:  # imageio's messages suggest plugins to install; not useful here
+        raise ClrefractError(f"{path}: not a readable mask image") from None
+    if raw.ndim == 3:  # alpha where it varies (a cut-out), else the grey level
+        varies = raw.shape[2] in (2, 4) and raw[..., -1].min() != raw[..., -1].max()
+        raw = raw[..., -1] if varies else raw[..., 0]
+    if raw.shape != (cam.height, cam.width):
+        raise ClrefractError(
+            f"{path}: mask is {raw.shape[-1]}x{raw.shape[0]} but its camera says "
+            f"{cam.width}x{cam.height}"
+        )
+    return raw > np.iinfo(raw.dtype).max / 2 if raw.dtype.kind == "u" else raw > 0.5
+
+
 class Dataset:
     """A dataset folder: scene, cameras, images (read on demand) and environment map."""
 
@@ -323,6 +348,27 @@ class Dataset:
 
     def image(self, cam: Camera) -> np.ndarray:
         return self.frame(cam)[0]
+
+    def mask_path(self, cam: Camera) -> Path | None:
+        """The user's object mask of a frame: its mask_path, else masks/<frame>.png (or any
+        image type) in the dataset folder; None without one."""
+        if cam.mask_path:
+            return self.root / cam.mask_path
+        stem = frame_stem(cam, 0)
+        return next(
+            (p for s in IMAGE_SUFFIXES if (p := self.root / MASK_DIR / f"{stem}{s}").is_file()),
+            None,
+        )
+
+    def has_mask(self, cam: Camera) -> bool:
+        return self.mask_path(cam) is not None
+
+    def mask(self, cam: Camera) -> np.ndarray:
+        """(H, W) bool object mask of a frame (white, or opaque alpha: the object)."""
+        path = self.mask_path(cam)
+        if path is None:
+            raise ClrefractError(f"{self.root}: frame {cam.name} has no mask")
+        return read_mask(path, cam)
 
     def pixel_weights(self, split: str = "train") -> np.ndarray:
         """Loss weights (n,) of a split's pixels in the order of rays_and_pixels: 0 where a
@@ -422,6 +468,12 @@ def check_dataset(root, notes: list[str] | None = None) -> list[str]:
                 problems.append(f"{where}: camera does not see the box at all")
             if np.all((c > lo) & (c < hi)):
                 problems.append(f"{where}: camera is inside the box")
+            mask = root / cam.mask_path if cam.mask_path else None
+            if mask is not None:
+                try:
+                    read_mask(mask, cam)
+                except ClrefractError as exc:
+                    problems.append(str(exc))
             path = frame_image_path(root, cam, suffix)
             if not path.is_file():
                 problems.append(f"{where}: image {path} is missing")

@@ -334,8 +334,10 @@ class Fit:
 
         if self._masks is None:
             env = self._env_full
-            self._masks = [
-                refraction_mask(cam, self.ds.image(cam), env, self.cfg.mask_threshold)
+            self._masks = [  # the user's object masks where the capture has them
+                self.ds.mask(cam)
+                if self.ds.has_mask(cam)
+                else refraction_mask(cam, self.ds.image(cam), env, self.cfg.mask_threshold)
                 for cam in self.ds.train
             ]
         return self._masks

@@ -174,3 +174,30 @@ def test_scene_keys_named_in_plain_words(rendered, tmp_path):
     (root / "scene.json").write_text(json.dumps(scene))
     with pytest.raises(ClrefractError, match="units must be"):
         read_scene(root)
+
+
+def test_user_masks_feed_the_start(rendered, tmp_path):
+    from clrefract.fit import Fit, load_config
+
+    cap = _to_capture(rendered, tmp_path / "capture")
+    (cap / "masks").mkdir()
+    d = Dataset(cap)
+    masks = []
+    for k, cam in enumerate(d.train):
+        m = np.zeros((cam.height, cam.width), np.uint8)
+        m[k % cam.height, :] = 255  # a different stripe per frame
+        iio.imwrite(cap / "masks" / f"{cam.name.removesuffix('.png')}.png", m)
+        masks.append(m > 0)
+    tj = json.loads((cap / "transforms_train.json").read_text())
+    tj["frames"][1]["mask_path"] = "masks/other.png"  # a per-frame path beats the folder
+    other = np.zeros((16, 16, 4), np.uint8)
+    other[:2, :2, 3] = 255  # a cut-out: the alpha channel is the mask
+    iio.imwrite(cap / "masks" / "other.png", other)
+    masks[1] = other[..., 3] > 0
+    (cap / "transforms_train.json").write_text(json.dumps(tj))
+    fit = Fit(cap, tmp_path / "run", load_config(None, {"res": 8}))
+    got = fit._refraction_masks()
+    assert all(np.array_equal(g, m) for g, m in zip(got, masks))
+    iio.imwrite(cap / "masks" / "other.png", np.zeros((5, 5), np.uint8))
+    with pytest.raises(ClrefractError, match="other.png: mask is 5x5"):
+        Dataset(cap).mask(Dataset(cap).train[1])
