@@ -333,6 +333,9 @@ class Dataset:
         if self.scene.box is None:
             self.scene.box = box_from_cameras(self.train + self.test, str(self.root))
         self.suffix = self.scene.frames or frame_suffix(self.root, self.train + self.test)
+        for cam in self.train:  # before a run folder is touched: the start reads them late
+            if cam.mask_path and not (self.root / cam.mask_path).is_file():
+                raise ClrefractError(f"{self.root / cam.mask_path}: mask file not found")
         self._weights: dict[str, np.ndarray] = {}
 
     @property

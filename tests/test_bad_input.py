@@ -371,3 +371,39 @@ def test_ascii_ground_truth_is_scored_and_a_bad_one_loses_nothing(ds, tmp_path, 
     assert any("gt_surface.ply" in e for e in res["scoring_errors"]), res
     assert res["test_psnr"] is not None and (run2 / "field.npz").is_file()
     assert "warning: scoring failed" in capsys.readouterr().err
+
+
+# ---- captures ------------------------------------------------------------------------------
+
+
+def test_import_problems(ds, tmp_path, capsys):
+    out = tmp_path / "imported"
+    refused(capsys, ["dataset", "import", tmp_path / "nowhere", "--out", out], "not found")
+    refused(capsys, ["dataset", "import", tmp_path, "--out", out], "no transforms_train.json")
+    refused(capsys, ["dataset", "import", ds, "--out", out, "--scale", "-2"], "--scale")
+    refused(capsys, ["dataset", "import", ds, "--out", out, "--eta-range", "2", "1"], "--eta")
+    refused(capsys, ["dataset", "import", ds, "--out", ds], "already holds a dataset", keep=ds)
+
+
+def test_photograph_frames(ds, tmp_path, capsys):
+    root = _copy(ds, tmp_path)
+    for p in (root / "train").glob("*.exr"):
+        p.unlink()  # the PNG previews are now the frames
+    _edit_json(root / "scene.json", lambda d: d.update(frames=".png"))
+    (root / "train" / "r_002.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")
+    _fit_refuses(capsys, root, tmp_path, "r_002.png", "not a readable")
+    _edit_json(root / "scene.json", lambda d: d.update(frames=".tiff"))
+    _fit_refuses(capsys, root, tmp_path, "scene.json", "'frames'")
+    _edit_json(root / "scene.json", lambda d: d.update(frames=".png", units="inch"))
+    _fit_refuses(capsys, root, tmp_path, "scene.json", "units")
+
+
+def test_bad_exposure_and_mask(ds, tmp_path, capsys):
+    root = _copy(ds, tmp_path)
+    tf = root / "transforms_train.json"
+    good = tf.read_text()
+    _edit_json(tf, lambda d: d["frames"][0].update(exposure_scale=0))
+    _fit_refuses(capsys, root, tmp_path, "exposure_scale", "positive")
+    tf.write_text(good)
+    _edit_json(tf, lambda d: d["frames"][0].update(mask_path="masks/none.png"))
+    _fit_refuses(capsys, root, tmp_path, "none.png", "mask file not found")
