@@ -26,6 +26,8 @@ class Camera:
     c2w: np.ndarray = field(repr=False)
     name: str = ""
     file_path: str = ""
+    exposure: float = 1.0  # linear radiance = decoded pixel value * exposure
+    mask_path: str = ""  # the user's object mask (white: object), relative to the JSON
 
     def __post_init__(self):
         self.c2w = np.array(self.c2w, dtype=np.float64)
@@ -51,6 +53,18 @@ class Camera:
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         o = np.broadcast_to(self.c2w[:3, 3], d.shape).copy()
         return o, d
+
+
+IMAGE_SUFFIXES = (".exr", ".png", ".jpg", ".jpeg")
+
+
+def frame_stem(cam: Camera, k: int) -> str:
+    """File name without image extension for writing a render of a frame: 'r_000' from
+    './test/r_000' and from './test/r_000.exr' alike."""
+    name = Path(cam.file_path).name if cam.file_path else ""
+    if Path(name).suffix.lower() in IMAGE_SUFFIXES:
+        name = Path(name).stem
+    return name or cam.name or f"view_{k:03d}"
 
 
 def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -118,7 +132,7 @@ def orbit_cameras(
 
 _INTRINSIC_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-_IMAGE_EXTS = ("", ".exr", ".png", ".jpg", ".jpeg")
+_IMAGE_EXTS = ("", *IMAGE_SUFFIXES)
 
 
 def _number(path: Path, where: str, key: str, value, positive: bool = False) -> float:
@@ -194,6 +208,9 @@ def _frame_camera(path: Path, top: dict, frame, k: int) -> Camera:
     # Per-frame intrinsics override the top-level ones.
     p = {key: top[key] for key in _INTRINSIC_KEYS + _DISTORTION_KEYS if key in top}
     p.update({key: frame[key] for key in _INTRINSIC_KEYS + _DISTORTION_KEYS if key in frame})
+    for key in _INTRINSIC_KEYS:  # even those another key overrides: garbage is a mistake
+        if key in p:
+            _number(path, where, key, p[key])
     for key in _DISTORTION_KEYS:
         if key in p and _number(path, where, key, p[key]) != 0.0:
             raise ClrefractError(f"{path}: {where}lens distortion '{key}' is not supported")
@@ -219,7 +236,24 @@ def _frame_camera(path: Path, top: dict, frame, k: int) -> Camera:
     cx = _number(path, where, "cx", p["cx"]) if "cx" in p else w / 2.0
     cy = _number(path, where, "cy", p["cy"]) if "cy" in p else h / 2.0
     name = Path(file_path).name if file_path else f"frame_{k:03d}"
-    return Camera(w, h, fl_x, fl_y, cx, cy, c2w, name=name, file_path=file_path)
+    exposure = frame.get("exposure_scale", top.get("exposure_scale", 1.0))
+    exposure = _number(path, where, "exposure_scale", exposure, positive=True)
+    mask_path = frame.get("mask_path", "")
+    if not isinstance(mask_path, str):
+        raise ClrefractError(f"{path}: {where}'mask_path' must be a string")
+    return Camera(
+        w,
+        h,
+        fl_x,
+        fl_y,
+        cx,
+        cy,
+        c2w,
+        name=name,
+        file_path=file_path,
+        exposure=exposure,
+        mask_path=mask_path,
+    )
 
 
 def load_transforms(path: PathLike) -> list[Camera]:
@@ -242,7 +276,26 @@ def load_transforms(path: PathLike) -> list[Camera]:
         raise ClrefractError(f"{path}: missing 'frames' list")
     if not frames:
         raise ClrefractError(f"{path}: 'frames' is empty")
-    return [_frame_camera(path, top, fr, k) for k, fr in enumerate(frames)]
+    cams = [_frame_camera(path, top, fr, k) for k, fr in enumerate(frames)]
+    _refuse_duplicates(path, cams)
+    return cams
+
+
+def _refuse_duplicates(path: Path, cams: list[Camera]) -> None:
+    """Two frames of one image would be weighted twice, and their renders overwrite each
+    other."""
+    seen: dict[str, int] = {}
+    for k, cam in enumerate(cams):
+        if not cam.file_path:
+            continue
+        key = str(Path(cam.file_path))
+        if Path(key).suffix.lower() in IMAGE_SUFFIXES:
+            key = str(Path(key).with_suffix(""))
+        if key in seen:
+            raise ClrefractError(
+                f"{path}: frames[{k}] repeats the image of frames[{seen[key]}] ({cam.file_path!r})"
+            )
+        seen[key] = k
 
 
 def _intrinsics(cam: Camera) -> dict:
@@ -273,6 +326,10 @@ def save_transforms(path: PathLike, cameras: list[Camera], extra: dict | None = 
             "file_path": cam.file_path or cam.name or f"frame_{k:03d}",
             "transform_matrix": cam.c2w.tolist(),
         }
+        if cam.exposure != 1.0:
+            fr["exposure_scale"] = cam.exposure
+        if cam.mask_path:
+            fr["mask_path"] = cam.mask_path
         intr = _intrinsics(cam)
         # Only cameras that differ from the first carry their own intrinsics.
         if any(intr[key] != top[key] for key in intr):

@@ -1,11 +1,12 @@
 """clrefract: recover index-of-refraction fields from photographs through curved rays.
 
-Commands: devices, render, dataset make, dataset check, fit."""
+Commands: devices, render, dataset make, dataset import, dataset check, fit."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -68,16 +69,34 @@ def _cmd_devices(args) -> int:
     return 0
 
 
+def _check_render_request(args) -> None:
+    """Sizes and counts of a render, refused before anything is read or allocated."""
+    from .limits import check_count, check_image_size
+
+    if args.max_steps is not None:
+        check_count("--max-steps", args.max_steps)
+    if args.step is not None and not (args.step > 0 and math.isfinite(args.step)):
+        raise ClrefractError(f"--step must be a positive number of mm, got {args.step}")
+    if not args.cameras and not args.dataset:
+        check_count("--views", args.views, 1, 100_000)
+        check_count("--res", args.res, 1)
+        check_image_size("--res", args.res, args.res)
+        if not (args.radius > 0 and math.isfinite(args.radius)):
+            raise ClrefractError(f"--radius must be a positive number of mm, got {args.radius}")
+
+
 def _cmd_render(args) -> int:
-    from .cameras import fibonacci_sphere_cameras, load_transforms
+    from .cameras import fibonacci_sphere_cameras, frame_stem, load_transforms
     from .envmap import EnvMap
     from .fields import Box
-    from .imageio import write_exr_rgb, write_png_srgb
+    from .imageio import ensure_out_dir, write_exr_rgb, write_png_srgb
+    from .limits import check_image_size, max_steps_for
     from .progress import Progress
     from .render import render_camera
     from .runtime import Runtime
     from .tracer import Tracer
 
+    _check_render_request(args)
     box = Box()
     dataset = None
     if args.dataset:
@@ -104,6 +123,11 @@ def _cmd_render(args) -> int:
         if bad:
             raise ClrefractError(f"--only: view(s) {bad} out of range 0..{len(cameras) - 1}")
         cameras = [cameras[i] for i in args.only]
+    for k, cam in enumerate(cameras):
+        check_image_size(f"view {k} ({cam.name})", cam.width, cam.height)
+    if args.step is not None:
+        max_steps_for(args.step, math.dist(box.lo, box.hi))
+    out = ensure_out_dir(args.out)
     if args.envmap:
         envmap = EnvMap.from_exr(Path(args.envmap))
     elif dataset is not None:
@@ -122,8 +146,6 @@ def _cmd_render(args) -> int:
         max_steps=args.max_steps,
         runtime=runtime,
     )
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     print(
         f"rendering {len(cameras)} view(s) of {field.kind} on {runtime.info.name} "
         f"({args.precision}, {tracer.lanes} lanes, {args.integrator}, step {args.step} mm)",
@@ -135,7 +157,7 @@ def _cmd_render(args) -> int:
         t0 = time.perf_counter()
         res = render_camera(tracer, cam, envmap)
         dt = time.perf_counter() - t0
-        stem = Path(cam.file_path).name if cam.file_path else f"view_{k:03d}"
+        stem = frame_stem(cam, k)
         write_exr_rgb(out / f"{stem}.exr", res.image)
         write_png_srgb(out / f"{stem}.png", res.image)
         summary.append({"view": stem, "seconds": dt, "steps": res.steps, **res.status_counts})
@@ -205,10 +227,28 @@ def _cmd_dataset_make(args) -> int:
     return 0
 
 
+def _cmd_dataset_import(args) -> int:
+    from .importer import import_capture
+
+    info = import_capture(
+        Path(args.src),
+        Path(args.out),
+        scale=args.scale,
+        box=args.box,
+        eta_range=tuple(args.eta_range),
+        envmap=Path(args.envmap) if args.envmap else None,
+    )
+    print(json.dumps(info, indent=2))
+    return 0
+
+
 def _cmd_dataset_check(args) -> int:
     from .dataset import check_dataset
 
-    problems = check_dataset(Path(args.dir))
+    notes: list[str] = []
+    problems = check_dataset(Path(args.dir), notes)
+    for n in notes:
+        print(f"{args.dir}: {n}")
     for p in problems:
         print(p)
     print(f"{args.dir}: {'OK' if not problems else f'{len(problems)} problem(s)'}")
@@ -246,10 +286,33 @@ def _cmd_fit(args) -> int:
             "test_views",
         )
     }
+    if args.resume:
+        _check_resume_flags(Path(args.out), overrides, args.config)
     cfg = load_config(Path(args.config) if args.config else None, overrides)
     result = run_fit(Path(args.dataset), Path(args.out), cfg, resume=args.resume)
     print(json.dumps({k: v for k, v in result.items() if k != "views"}, indent=2))
     return 0
+
+
+def _check_resume_flags(run: Path, overrides: dict, config: str | None) -> None:
+    """--resume continues a run with its own settings: a flag that asks for different ones
+    (another field kind, say) is refused rather than silently ignored."""
+    from .fit import load_config
+
+    if config:
+        raise ClrefractError("--resume takes the run's own config.toml; drop --config")
+    if not (run / "config.toml").is_file():
+        return  # prepare_fit names the missing run
+    saved = load_config(run / "config.toml", {})
+    clash = [
+        f"--{k.replace('_', '-')} {v} (the run has {getattr(saved, k)})"
+        for k, v in overrides.items()
+        if v is not None and k != "device" and k in vars(saved) and v != getattr(saved, k)
+    ]
+    if clash:
+        raise ClrefractError(
+            f"{run}: --resume cannot change the run's settings: {'; '.join(clash)}"
+        )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -326,6 +389,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--env-width", type=int, default=2048, help="procedural map width")
     p.add_argument("--device", default=None)
     p.set_defaults(func=_cmd_dataset_make)
+    p = ds.add_parser(
+        "import", help="make a dataset folder from a NeRF-synthetic or instant-ngp capture"
+    )
+    p.add_argument("src", help="capture folder (or its transforms.json)")
+    p.add_argument("--out", required=True, help="dataset folder to write")
+    p.add_argument(
+        "--scale", type=float, default=1.0, help="millimetres per unit of the camera poses"
+    )
+    p.add_argument(
+        "--box",
+        type=float,
+        nargs=6,
+        metavar=("XLO", "YLO", "ZLO", "XHI", "YHI", "ZHI"),
+        help="the object's box in the poses' units (default: the region the cameras look at)",
+    )
+    p.add_argument("--eta-range", type=float, nargs=2, default=[1.0, 1.6], metavar=("LO", "HI"))
+    p.add_argument("--envmap", help="equirectangular HDR EXR (default: SRC/envmap.exr)")
+    p.set_defaults(func=_cmd_dataset_import)
     p = ds.add_parser("check", help="validate a dataset folder and name every problem")
     p.add_argument("dir")
     p.set_defaults(func=_cmd_dataset_check)

@@ -17,33 +17,45 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import Camera, load_transforms
+from .cameras import IMAGE_SUFFIXES, Camera, frame_stem, load_transforms
 from .envmap import EnvMap
 from .errors import ClrefractError
 from .fields.base import Box
-from .imageio import atomic_path, read_exr_rgb
+from .imageio import atomic_path, read_frame
+from .limits import check_training_rays
 
 SCENE_FILE = "scene.json"
 FORMAT = "clrefract-dataset"
 
 
+# scene.json, every key optional (README, "Bringing your own capture"):
+DEFAULT_ETA_RANGE = (1.0, 1.6)  # glass and water lie inside
+DEFAULT_MARGIN = 4.0  # mm; at most a tenth of the box's smallest side
+DEFAULT_HOLDOUT = 8  # one transforms file: every 8th frame is a test view
+TRAIN_FILES = ("transforms_train.json", "transforms.json")
+TEST_FILE = "transforms_test.json"
+
+
 @dataclass
 class Scene:
-    box: Box
+    box: Box | None  # None: the region the cameras all look at (Dataset fills it in)
     eta_range: tuple[float, float]
     object: dict | None = None  # the analytic object of a synthetic scene
     envmap: str = "envmap.exr"
     train: str = "transforms_train.json"
-    test: str = "transforms_test.json"
+    test: str = "transforms_test.json"  # the train file itself: every holdout_every-th frame
     ground_truth: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
+    frames: str = ""  # image type of frames named without one; "": the type found on disk
+    holdout_every: int = DEFAULT_HOLDOUT
+    assumed: list[str] = field(default_factory=list)  # keys taken by default, in words
 
     def to_dict(self) -> dict:
-        return {
+        d = {
             "format": FORMAT,
             "version": 1,
             "units": "mm",
-            "box": self.box.to_dict(),
+            "box": self.box.to_dict() if self.box is not None else None,
             "eta_range": list(self.eta_range),
             "object": self.object,
             "envmap": self.envmap,
@@ -52,6 +64,13 @@ class Scene:
             "ground_truth": self.ground_truth,
             **self.extra,
         }
+        if d["box"] is None:
+            del d["box"]
+        if self.frames:
+            d["frames"] = self.frames
+        if self.test == self.train:
+            d["holdout_every"] = self.holdout_every
+        return d
 
 
 def write_scene(root: Path, scene: Scene) -> None:
@@ -59,50 +78,247 @@ def write_scene(root: Path, scene: Scene) -> None:
         tmp.write_text(json.dumps(scene.to_dict(), indent=2) + "\n")
 
 
-def read_scene(root: Path) -> Scene:
-    path = Path(root) / SCENE_FILE
-    if not path.is_file():
-        raise ClrefractError(f"{path}: scene file not found (is {root} a clrefract dataset?)")
+def _numbers(value, n: int) -> bool:
+    """Whether value is a list of n finite numbers (JSON true/false are not numbers)."""
+    return (
+        isinstance(value, list | tuple)
+        and len(value) == n
+        and all(
+            isinstance(x, int | float) and not isinstance(x, bool) and np.isfinite(x) for x in value
+        )
+    )
+
+
+def default_margin(lo, hi) -> float:
+    return float(min(DEFAULT_MARGIN, np.min(np.asarray(hi) - np.asarray(lo)) / 10))
+
+
+def _box(path: Path, d) -> Box:
+    if not isinstance(d, dict):
+        raise ClrefractError(f"{path}: 'box' must be an object with 'lo', 'hi' and 'margin'")
+    for key, words in (("lo", "lowest"), ("hi", "highest")):
+        if key not in d:
+            raise ClrefractError(
+                f"{path}: 'box' needs '{key}', its {words} corner [x, y, z] in mm (or leave "
+                "out 'box' to take it from the cameras)"
+            )
+        if not _numbers(d[key], 3):
+            raise ClrefractError(f"{path}: box '{key}' must be 3 numbers (mm), got {d[key]!r}")
+    margin = d.get("margin", default_margin(d["lo"], d["hi"]))
+    if not _numbers([margin], 1):
+        raise ClrefractError(f"{path}: box 'margin' must be a number of mm, got {margin!r}")
+    try:
+        return Box(tuple(map(float, d["lo"])), tuple(map(float, d["hi"])), float(margin))
+    except ClrefractError as exc:
+        raise ClrefractError(f"{path}: {exc}") from None
+
+
+def _string(path: Path, d: dict, key: str, default: str) -> str:
+    v = d.get(key, default)
+    if not isinstance(v, str) or not v:
+        raise ClrefractError(f"{path}: '{key}' must be a file name, got {v!r}")
+    return v
+
+
+def _load_scene_file(path: Path) -> dict:
     try:
         d = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ClrefractError(f"{path}: cannot read scene file ({exc})") from None
     if not isinstance(d, dict):
         raise ClrefractError(f"{path}: top level must be a JSON object")
-    try:
-        box = Box.from_dict(d["box"]) if "box" in d else Box()
-        eta = tuple(float(x) for x in d.get("eta_range", (1.0, 1.6)))
-        if len(eta) != 2 or not 1.0 <= eta[0] < eta[1]:
-            raise ValueError(f"eta_range must be [lo, hi] with 1 <= lo < hi, got {eta}")
-    except (KeyError, TypeError, ValueError, ClrefractError) as exc:
-        raise ClrefractError(f"{path}: bad scene description ({exc})") from None
-    known = {
-        "format",
-        "version",
-        "units",
-        "box",
-        "eta_range",
-        "object",
-        "envmap",
-        "train",
-        "test",
-        "ground_truth",
-    }
+    return d
+
+
+def _transforms_files(root: Path, d: dict, path: Path, assumed: list[str]) -> tuple[str, str]:
+    if "train" in d:
+        train = _string(path, d, "train", "")
+    else:
+        train = next((f for f in TRAIN_FILES if (root / f).is_file()), TRAIN_FILES[0])
+        assumed.append(f"train: cameras from {train}")
+    if "test" in d:
+        test = _string(path, d, "test", "")
+    elif (root / TEST_FILE).is_file() or train == TRAIN_FILES[0]:
+        test = TEST_FILE
+        assumed.append(f"test: cameras from {test}")
+    else:
+        test = train
+        assumed.append(f"test: every {DEFAULT_HOLDOUT}th frame of {train} held out")
+    return train, test
+
+
+def read_scene(root: Path) -> Scene:
+    """The scene of a dataset folder: scene.json where there is one, defaults for every key
+    it lacks (or for all, without one), listed in words in Scene.assumed."""
+    root = Path(root)
+    path = root / SCENE_FILE
+    d = _load_scene_file(path) if path.is_file() else {}
+    assumed: list[str] = [] if path.is_file() else [f"no {SCENE_FILE}: every key by default"]
+    units = d.get("units", "mm")
+    if units != "mm":
+        raise ClrefractError(
+            f'{path}: units must be "mm", got {units!r} (`clrefract dataset import --scale` '
+            "converts a capture to millimetres)"
+        )
+    box = _box(path, d["box"]) if "box" in d else None
+    if box is None:
+        assumed.append("box: the region all cameras look at")
+    elif "margin" not in d["box"]:
+        assumed.append(f"box margin: {box.margin:g} mm")
+    eta = d.get("eta_range", DEFAULT_ETA_RANGE)
+    if not _numbers(eta, 2) or not 1.0 <= eta[0] < eta[1]:
+        raise ClrefractError(
+            f"{path}: 'eta_range' must be [lo, hi], numbers with 1 <= lo < hi, got {eta!r}"
+        )
+    if "eta_range" not in d:
+        assumed.append(f"eta_range: {list(DEFAULT_ETA_RANGE)}")
+    envmap = _string(path, d, "envmap", "envmap.exr")
+    if "envmap" not in d:
+        assumed.append("envmap: envmap.exr")
+    train, test = _transforms_files(root, d, path, assumed)
+    holdout = d.get("holdout_every", DEFAULT_HOLDOUT)
+    if isinstance(holdout, bool) or not isinstance(holdout, int) or holdout < 2:
+        raise ClrefractError(f"{path}: 'holdout_every' must be a whole number >= 2")
+    frames = d.get("frames", ".exr" if d.get("format") == FORMAT else "")
+    if frames and frames not in IMAGE_SUFFIXES:
+        raise ClrefractError(f"{path}: 'frames' must be one of {', '.join(IMAGE_SUFFIXES)}")
+    gt = d.get("ground_truth", {}) or {}
+    if not isinstance(gt, dict):
+        raise ClrefractError(f"{path}: 'ground_truth' must be an object")
+    known = {"format", "version", "units", "box", "eta_range", "object", "envmap", "train"}
+    known |= {"test", "ground_truth", "frames", "holdout_every"}
     return Scene(
         box=box,
-        eta_range=eta,
+        eta_range=(float(eta[0]), float(eta[1])),
         object=d.get("object"),
-        envmap=d.get("envmap", "envmap.exr"),
-        train=d.get("train", "transforms_train.json"),
-        test=d.get("test", "transforms_test.json"),
-        ground_truth=d.get("ground_truth", {}) or {},
+        envmap=envmap,
+        train=train,
+        test=test,
+        ground_truth=gt,
         extra={k: v for k, v in d.items() if k not in known},
+        frames=frames,
+        holdout_every=holdout,
+        assumed=assumed,
     )
 
 
-def frame_image_path(root: Path, cam: Camera) -> Path:
+def box_from_cameras(cams: list[Camera], where: str) -> Box:
+    """The region every camera looks at: centred on the point nearest all optical axes, as
+    wide as the narrowest view is there (so the whole box is in every image)."""
+    eye = np.array([c.c2w[:3, 3] for c in cams])
+    fwd = np.array([-c.c2w[:3, 2] / np.linalg.norm(c.c2w[:3, 2]) for c in cams])
+    proj = np.eye(3)[None] - fwd[:, :, None] * fwd[:, None, :]  # off-axis part, per camera
+    a, b = proj.sum(0), np.einsum("nij,nj->i", proj, eye)
+    if len(cams) < 2 or np.linalg.cond(a) > 1e8:
+        raise ClrefractError(
+            f"{where}: the cameras do not look at one common point (parallel views?); give "
+            "the object's box in scene.json"
+        )
+    centre = np.linalg.solve(a, b)
+    depth = np.einsum("ni,ni->n", centre - eye, fwd)
+    if np.any(depth <= 0):
+        k = int(np.argmin(depth))
+        raise ClrefractError(
+            f"{where}: frame {k} ({cams[k].file_path or cams[k].name}) looks away from the "
+            "point the other cameras look at; give the object's box in scene.json"
+        )
+    tan_half = np.array([min(c.width / 2 / c.fl_x, c.height / 2 / c.fl_y) for c in cams])
+    half = float(np.min(depth * tan_half)) / np.sqrt(3)  # the box's corners stay in view
+    lo, hi = centre - half, centre + half
+    return Box(tuple(lo), tuple(hi), default_margin(lo, hi))
+
+
+def load_cameras(root: Path, scene: Scene) -> tuple[list[Camera], list[Camera]]:
+    """Training and test cameras of a scene; one transforms file is split by holdout."""
+    train = load_transforms(root / scene.train)
+    if scene.test != scene.train:
+        return train, load_transforms(root / scene.test)
+    k = scene.holdout_every
+    return [c for i, c in enumerate(train) if i % k], train[::k]
+
+
+def frame_suffix(root: Path, cams: list[Camera]) -> str:
+    """The image type of frames named without one ('./train/r_0'): that of the first such
+    frame on disk, EXR before PNG and JPEG (clrefract's own datasets keep PNG previews beside
+    their EXR frames), and one type for all, so that a missing EXR is reported rather than
+    replaced by its preview."""
+    for cam in cams:
+        p = Path(root) / cam.file_path
+        if cam.file_path and p.suffix.lower() not in IMAGE_SUFFIXES:
+            for suffix in IMAGE_SUFFIXES:
+                if p.with_name(p.name + suffix).is_file():
+                    return suffix
+            break
+    return ".exr"
+
+
+def frame_image_path(root: Path, cam: Camera, suffix: str = ".exr") -> Path:
     p = Path(root) / cam.file_path
-    return p if p.suffix.lower() == ".exr" else p.with_name(p.name + ".exr")
+    return p if p.suffix.lower() in IMAGE_SUFFIXES else p.with_name(p.name + suffix)
+
+
+def read_frame_image(path: Path, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's linear image (times its exposure) and the loss weight of each pixel (0 where
+    the photograph clipped: its radiance is unknown), checked against its camera."""
+    img, clipped = read_frame(path)
+    if img.shape[:2] != (cam.height, cam.width):
+        raise ClrefractError(
+            f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
+            f"camera says {cam.width}x{cam.height}"
+        )
+    if not np.isfinite(img).all():
+        raise ClrefractError(f"{path}: image has NaN or infinite pixels")
+    weight = np.ones(img.shape[:2], np.float32)
+    if clipped is not None:
+        weight[clipped] = 0.0
+    return img * np.float32(cam.exposure), weight
+
+
+def sees_box(cam: Camera, box: Box) -> bool:
+    """Whether any part of the box can be in the camera's image: the box of the projected
+    corners overlaps the image (a box that straddles the camera's plane counts as seen)."""
+    corners = np.array(
+        [
+            [x, y, z]
+            for x in (box.lo[0], box.hi[0])
+            for y in (box.lo[1], box.hi[1])
+            for z in (box.lo[2], box.hi[2])
+        ]
+    )
+    p = (corners - cam.c2w[:3, 3]) @ cam.c2w[:3, :3]  # camera axes: looks down -z
+    depth = -p[:, 2]
+    if np.all(depth <= 0):
+        return False
+    if np.any(depth <= 0):
+        return True
+    u = cam.cx + cam.fl_x * p[:, 0] / depth
+    v = cam.cy - cam.fl_y * p[:, 1] / depth
+    return bool(u.max() > 0 and u.min() < cam.width and v.max() > 0 and v.min() < cam.height)
+
+
+MASK_DIR = "masks"
+
+
+def read_mask(path: Path, cam: Camera) -> np.ndarray:
+    """A mask image as (H, W) bool: above half grey in its first channel, or where its alpha
+    channel (if it varies) is above half."""
+    import imageio.v3 as iio
+
+    if not path.is_file():
+        raise ClrefractError(f"{path}: mask file not found")
+    try:
+        raw = np.asarray(iio.imread(path, plugin="pillow"))
+    except Exception:  # imageio's messages suggest plugins to install; not useful here
+        raise ClrefractError(f"{path}: not a readable mask image") from None
+    if raw.ndim == 3:  # alpha where it varies (a cut-out), else the grey level
+        varies = raw.shape[2] in (2, 4) and raw[..., -1].min() != raw[..., -1].max()
+        raw = raw[..., -1] if varies else raw[..., 0]
+    if raw.shape != (cam.height, cam.width):
+        raise ClrefractError(
+            f"{path}: mask is {raw.shape[-1]}x{raw.shape[0]} but its camera says "
+            f"{cam.width}x{cam.height}"
+        )
+    return raw > np.iinfo(raw.dtype).max / 2 if raw.dtype.kind == "u" else raw > 0.5
 
 
 class Dataset:
@@ -113,8 +329,14 @@ class Dataset:
         if not self.root.is_dir():
             raise ClrefractError(f"{self.root}: dataset folder not found")
         self.scene = read_scene(self.root)
-        self.train = load_transforms(self.root / self.scene.train)
-        self.test = load_transforms(self.root / self.scene.test)
+        self.train, self.test = load_cameras(self.root, self.scene)
+        if self.scene.box is None:
+            self.scene.box = box_from_cameras(self.train + self.test, str(self.root))
+        self.suffix = self.scene.frames or frame_suffix(self.root, self.train + self.test)
+        for cam in self.train:  # before a run folder is touched: the start reads them late
+            if cam.mask_path and not (self.root / cam.mask_path).is_file():
+                raise ClrefractError(f"{self.root / cam.mask_path}: mask file not found")
+        self._weights: dict[str, np.ndarray] = {}
 
     @property
     def box(self) -> Box:
@@ -123,52 +345,120 @@ class Dataset:
     def envmap(self) -> EnvMap:
         return EnvMap.from_exr(self.root / self.scene.envmap)
 
+    def frame(self, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """Linear image (H, W, 3) and per-pixel loss weights (H, W) of a frame."""
+        return read_frame_image(frame_image_path(self.root, cam, self.suffix), cam)
+
     def image(self, cam: Camera) -> np.ndarray:
-        path = frame_image_path(self.root, cam)
-        img = read_exr_rgb(path)
-        if img.shape[:2] != (cam.height, cam.width):
-            raise ClrefractError(
-                f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
-                f"camera says {cam.width}x{cam.height}"
-            )
-        if not np.isfinite(img).all():
-            raise ClrefractError(f"{path}: image has NaN or infinite pixels")
-        return img
+        return self.frame(cam)[0]
+
+    def mask_path(self, cam: Camera) -> Path | None:
+        """The user's object mask of a frame: its mask_path, else masks/<frame>.png (or any
+        image type) in the dataset folder; None without one."""
+        if cam.mask_path:
+            return self.root / cam.mask_path
+        stem = frame_stem(cam, 0)
+        return next(
+            (p for s in IMAGE_SUFFIXES if (p := self.root / MASK_DIR / f"{stem}{s}").is_file()),
+            None,
+        )
+
+    def has_mask(self, cam: Camera) -> bool:
+        return self.mask_path(cam) is not None
+
+    def mask(self, cam: Camera) -> np.ndarray:
+        """(H, W) bool object mask of a frame (white, or opaque alpha: the object)."""
+        path = self.mask_path(cam)
+        if path is None:
+            raise ClrefractError(f"{self.root}: frame {cam.name} has no mask")
+        return read_mask(path, cam)
+
+    def pixel_weights(self, split: str = "train") -> np.ndarray:
+        """Loss weights (n,) of a split's pixels in the order of rays_and_pixels: 0 where a
+        photograph clipped."""
+        if split not in self._weights:
+            self.rays_and_pixels(split)
+        return self._weights[split]
 
     def rays_and_pixels(self, split: str = "train"):
         """All rays of a split with their target radiance: origins, dirs (n, 3), rgb (n, 3)."""
         cams = self.train if split == "train" else self.test
-        os_, ds, px = [], [], []
+        source = self.root / (self.scene.train if split == "train" else self.scene.test)
+        for k, cam in enumerate(cams):
+            if not sees_box(cam, self.box):
+                raise ClrefractError(
+                    f"{source}: frame {k} ({cam.file_path or cam.name}) does not see the "
+                    f"object's box {list(self.box.lo)}..{list(self.box.hi)} mm (wrong poses, "
+                    "units or box?)"
+                )
+        check_training_rays(str(source), sum(c.width * c.height for c in cams))
+        os_, ds, px, wt = [], [], [], []
         for cam in cams:
             o, d = cam.rays()
             os_.append(o)
             ds.append(d)
-            px.append(self.image(cam).reshape(-1, 3))
+            img, weight = self.frame(cam)
+            px.append(img.reshape(-1, 3))
+            wt.append(weight.ravel())
+        self._weights[split] = np.concatenate(wt).astype(np.float64)
         return np.concatenate(os_), np.concatenate(ds), np.concatenate(px).astype(np.float64)
 
 
-def check_dataset(root) -> list[str]:
-    """Every problem found in a dataset folder, as messages naming the file (empty: fine)."""
+def _splits(root: Path, scene: Scene, problems: list[str]) -> list[tuple[str, list[Camera]]]:
+    """(transforms file, cameras) of each split that could be read; the others' problems."""
+    loaded = {}
+    for name in dict.fromkeys([scene.train, scene.test]):
+        try:
+            loaded[name] = load_transforms(root / name)
+        except ClrefractError as exc:
+            problems.append(str(exc))
+    if scene.train == scene.test and scene.train in loaded:
+        train, test = load_cameras(root, scene)
+        return [(scene.train, train), (scene.test, test)]
+    return [(name, loaded[name]) for name in (scene.train, scene.test) if name in loaded]
+
+
+def _describe_box(scene: Scene, cams: list[Camera], root: Path, notes: list[str]) -> None:
+    """Fill in a box taken from the cameras, saying so, and doubt one too small for mm."""
+    if scene.box is None:
+        scene.box = box_from_cameras(cams, str(root))
+        lo = ", ".join(f"{x:.4g}" for x in scene.box.lo)
+        hi = ", ".join(f"{x:.4g}" for x in scene.box.hi)
+        notes.append(f"box from the cameras: [{lo}] to [{hi}] mm, margin {scene.box.margin:.3g}")
+    size = float(np.min(scene.box.size))
+    if size < 10:
+        notes.append(
+            f"the box is only {size:.3g} mm across: are the camera poses in millimetres? "
+            "(`clrefract dataset import --scale` converts them)"
+        )
+
+
+def check_dataset(root, notes: list[str] | None = None) -> list[str]:
+    """Every problem found in a dataset folder, as messages naming the file (empty: fine).
+    `notes` receives what was assumed for lack of a scene.json or of some of its keys."""
     root = Path(root)
     problems: list[str] = []
+    notes = [] if notes is None else notes
     if not root.is_dir():
         return [f"{root}: dataset folder not found"]
     try:
         scene = read_scene(root)
     except ClrefractError as exc:
         return [str(exc)]
+    notes.extend(f"assumed {a}" for a in scene.assumed)
     try:
         EnvMap.from_exr(root / scene.envmap)
     except ClrefractError as exc:
         problems.append(str(exc))
+    splits = _splits(root, scene, problems)
+    try:
+        _describe_box(scene, [c for _, cams in splits for c in cams], root, notes)
+    except ClrefractError as exc:
+        return problems + [str(exc)]
     lo, hi = np.asarray(scene.box.lo), np.asarray(scene.box.hi)
     centre, half = (lo + hi) / 2, np.linalg.norm(hi - lo) / 2
-    for split in (scene.train, scene.test):
-        try:
-            cams = load_transforms(root / split)
-        except ClrefractError as exc:
-            problems.append(str(exc))
-            continue
+    for split, cams in splits:
+        suffix = scene.frames or frame_suffix(root, cams)
         for k, cam in enumerate(cams):
             where = f"{root / split}: frame {k} ({cam.file_path or 'no file_path'})"
             # the view ray through the image centre must pass near the box
@@ -177,14 +467,22 @@ def check_dataset(root) -> list[str]:
             t = max(float((centre - c) @ fwd), 0.0)
             if np.linalg.norm(c + t * fwd - centre) > half:
                 problems.append(f"{where}: camera does not look at the box")
+            elif not sees_box(cam, scene.box):
+                problems.append(f"{where}: camera does not see the box at all")
             if np.all((c > lo) & (c < hi)):
                 problems.append(f"{where}: camera is inside the box")
-            path = frame_image_path(root, cam)
+            mask = root / cam.mask_path if cam.mask_path else None
+            if mask is not None:
+                try:
+                    read_mask(mask, cam)
+                except ClrefractError as exc:
+                    problems.append(str(exc))
+            path = frame_image_path(root, cam, suffix)
             if not path.is_file():
                 problems.append(f"{where}: image {path} is missing")
                 continue
             try:
-                img = read_exr_rgb(path)
+                img = read_frame(path)[0]
             except ClrefractError as exc:
                 problems.append(str(exc))
                 continue

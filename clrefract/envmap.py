@@ -22,6 +22,9 @@ def pixel_directions(width: int, height: int) -> np.ndarray:
     )
 
 
+MIN_WIDTH = 8  # pixels of the smallest environment map read from a file
+
+
 class EnvMap:
     """Linear radiance over the sphere, stored as an (H, W, 3) float32 lat-long image."""
 
@@ -44,6 +47,13 @@ class EnvMap:
         img = read_exr_rgb(path)
         if not np.isfinite(img).all():
             raise ClrefractError(f"{path}: environment map has NaN or infinite pixels")
+        h, w = img.shape[:2]
+        if w < MIN_WIDTH or h < MIN_WIDTH // 2:
+            # a lat-long map of a few pixels cannot show the object anything to refract
+            raise ClrefractError(
+                f"{path}: environment map is {w}x{h} pixels; a lat-long map needs at least "
+                f"{MIN_WIDTH}x{MIN_WIDTH // 2}"
+            )
         return cls(img)
 
     def save(self, path: PathLike) -> None:

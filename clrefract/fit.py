@@ -24,7 +24,8 @@ import numpy as np
 from .adam import Adam
 from .dataset import Dataset
 from .errors import ClrefractError
-from .imageio import atomic_path
+from .imageio import atomic_path, ensure_out_dir
+from .limits import check_fit_config
 from .loss import photometric_loss
 from .metrics import psnr_linear_batch
 from .progress import Progress
@@ -37,6 +38,8 @@ except ImportError:  # Python 3.10
 
 FIELDS = ("levelset", "voxel", "hashgrid")
 GRID_FIELDS = ("levelset", "voxel")  # fields on a node grid of `res` per axis
+# what a run folder holds that a new run would overwrite
+RUN_FILES = ("checkpoint.npz", "field.npz", "results.json", "start.json", "run.json")
 
 
 @dataclass
@@ -114,6 +117,7 @@ class FitConfig:
     def validate(self) -> None:
         if self.field not in FIELDS:
             raise ClrefractError(f"field must be one of {', '.join(FIELDS)}, got {self.field!r}")
+        check_fit_config(self)
         for name in ("iterations", "batch", "res", "queues"):
             if getattr(self, name) < 1:
                 raise ClrefractError(f"{name} must be at least 1, got {getattr(self, name)}")
@@ -253,6 +257,7 @@ class Fit:
         view = np.repeat(np.arange(len(sizes)), sizes)
         held = np.isin(view, held_out_views(cfg, len(sizes)))
         self._pool, self._held = np.flatnonzero(~held), np.flatnonzero(held)
+        self.weights = self.ds.pixel_weights("train")  # 0 where a photograph clipped
         self._env_full = self.ds.envmap()
         self._env_cache: dict[float, tuple] = {}
         self.it = 0
@@ -354,8 +359,10 @@ class Fit:
 
         if self._masks is None:
             env = self._env_full
-            self._masks = [
-                refraction_mask(cam, self.ds.image(cam), env, self.cfg.mask_threshold)
+            self._masks = [  # the user's object masks where the capture has them
+                self.ds.mask(cam)
+                if self.ds.has_mask(cam)
+                else refraction_mask(cam, self.ds.image(cam), env, self.cfg.mask_threshold)
                 for cam in self.ds.train
             ]
         return self._masks
@@ -647,7 +654,7 @@ class Fit:
         """Loss of the current field on training rays idx, against the sharp environment
         (forward pass only)."""
         r = self.engine.tracer.trace(self.origins[idx], self.dirs[idx])
-        ok = (r.status == 0).astype(float)
+        ok = (r.status == 0) * self.weights[idx]
         return float(
             photometric_loss(self._env_full, r.direction, self.rgb[idx], ok, self.cfg.loss)[0]
         )
@@ -696,7 +703,7 @@ class Fit:
         t0 = time.perf_counter()
         targets = self.targets_at(self.it)
         r = self.engine.loss_and_grad(
-            self.origins[idx], self.dirs[idx], targets[idx], self.env_at(self.it)
+            self.origins[idx], self.dirs[idx], targets[idx], self.env_at(self.it), self.weights[idx]
         )
         reg, greg = self.field.regularizer(self.params)
         grad = r.grad + self.cfg.reg * greg
@@ -834,11 +841,11 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
         if not (out / "config.toml").is_file():
             raise ClrefractError(f"{out}: no run to resume (config.toml missing)")
         cfg = load_config(out / "config.toml", {})
-    elif (out / "checkpoint.npz").exists():
+    elif any((out / name).exists() for name in RUN_FILES):
         raise ClrefractError(
             f"{out} already holds a run: use --resume to continue it, or another --out"
         )
-    out.mkdir(parents=True, exist_ok=True)
+    ensure_out_dir(out, "run folder")
     fit = Fit(dataset, out, cfg, stream=stream)
     if resume:
         fit.load_checkpoint()

@@ -139,8 +139,14 @@ class GradientEngine:
         return pending
 
     def loss_and_grad(
-        self, origins: np.ndarray, dirs: np.ndarray, targets: np.ndarray, env: EnvMap
+        self,
+        origins: np.ndarray,
+        dirs: np.ndarray,
+        targets: np.ndarray,
+        env: EnvMap,
+        weights: np.ndarray | None = None,
     ) -> GradientResult:
+        """weights: (n,) loss weight of each ray's pixel (0: a clipped photograph pixel)."""
         tr = self.tracer
         pending = self.forward(origins, dirs)
         n = len(origins)
@@ -153,9 +159,8 @@ class GradientEngine:
             status[idx] = st[:m]
             steps += int(sp[:m].sum())
         exited = status == Status.EXITED
-        loss, mu, rad = photometric_loss(
-            env, vel, targets, weight=exited.astype(float), space=self.loss_space
-        )
+        weight = exited.astype(float) if weights is None else exited * np.asarray(weights)
+        loss, mu, rad = photometric_loss(env, vel, targets, weight=weight, space=self.loss_space)
         mu[~exited] = 0.0
 
         n_par = len(self.field.data())

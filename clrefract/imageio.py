@@ -40,6 +40,25 @@ def atomic_path(path: PathLike, suffix: str = "") -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
+def ensure_out_dir(path: PathLike, what: str = "output folder") -> Path:
+    """An output folder that exists and can be written, made if missing; refused in one line
+    when it is a file or read-only, before any work is done."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ClrefractError(f"{path}: {what} exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ClrefractError(f"{path}: cannot make the {what} ({e.strerror or e})") from None
+    try:  # a real write: access() says yes to root on any folder, even a read-only mount
+        fd, probe = tempfile.mkstemp(prefix=".clrefract-probe.", dir=path)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise ClrefractError(f"{path}: {what} is not writable ({e.strerror or e})") from None
+    return path
+
+
 def _rgb_channel_names(names: list[str]) -> tuple[str, str, str] | None:
     """R,G,B if present, else X.R,X.G,X.B for a single layer X (e.g. 'rgba.R')."""
     if {"R", "G", "B"} <= set(names):
@@ -72,6 +91,46 @@ def read_exr_rgb(path: PathLike) -> np.ndarray:
     if any(p.ndim != 2 or p.shape != planes[0].shape for p in planes):
         raise ClrefractError(f"{path}: R, G, B channels differ in size (subsampled channels?)")
     return np.ascontiguousarray(np.stack(planes, axis=-1), dtype=np.float32)
+
+
+PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
+# an 8-bit value at or above this clipped in the camera: its radiance is unknown
+SATURATED = 254 / 255
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """Inverse of the sRGB OETF for encoded values in [0, 1]; float32 out."""
+    x = np.asarray(x, dtype=np.float32)
+    hi = np.power((x + 0.055) / 1.055, 2.4, dtype=np.float32)
+    return np.where(x <= 0.04045, x / 12.92, hi).astype(np.float32)
+
+
+def read_photo_rgb(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Linear RGB (H, W, 3) float32 of an sRGB PNG or JPEG (8 or 16 bits, grey or colour,
+    alpha ignored), and the (H, W) bool map of pixels clipped in some channel."""
+    path = Path(path)
+    if not path.is_file():
+        raise ClrefractError(f"{path}: image file not found")
+    try:
+        raw = np.asarray(iio.imread(path, plugin="pillow"))
+    except Exception:  # imageio's messages suggest plugins to install; not useful here
+        raise ClrefractError(f"{path}: not a readable PNG or JPEG image") from None
+    if raw.dtype not in (np.uint8, np.uint16) or raw.ndim not in (2, 3):
+        raise ClrefractError(f"{path}: unsupported image layout {raw.shape} of {raw.dtype}")
+    if raw.ndim == 2:
+        raw = raw[:, :, None]
+    rgb = raw[:, :, :3] if raw.shape[2] >= 3 else np.repeat(raw[:, :, :1], 3, axis=2)
+    encoded = rgb.astype(np.float32) / float(np.iinfo(raw.dtype).max)
+    saturated = (encoded >= SATURATED - 1e-6).any(axis=2)
+    return srgb_to_linear(encoded), saturated
+
+
+def read_frame(path: PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """A training or test frame: linear RGB, and the clipped-pixel map (None for EXR, whose
+    values are radiance and never clip at a known level)."""
+    if Path(path).suffix.lower() in PHOTO_SUFFIXES:
+        return read_photo_rgb(path)
+    return read_exr_rgb(path), None
 
 
 def write_exr_rgb(path: PathLike, img: np.ndarray, half: bool = False) -> None:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .cameras import frame_stem
 from .imageio import atomic_path, write_exr_rgb, write_png_srgb
 from .metrics import psnr_ssim
 
@@ -97,11 +98,11 @@ def render_test_views(fit, out_dir: Path | None, limit: int = -1, tracer=None) -
     env = fit.ds.envmap()
     cams = fit.ds.test if limit < 0 else fit.ds.test[:limit]
     rows = []
-    for cam in cams:
+    for k, cam in enumerate(cams):
         img = render_camera(tracer, cam, env).image
         ref = fit.ds.image(cam)
         psnr, ssim = psnr_ssim(img, ref)
-        stem = Path(cam.file_path).name or cam.name
+        stem = frame_stem(cam, k)
         if out_dir is not None:
             write_exr_rgb(out_dir / f"{stem}.exr", img)
             write_png_srgb(out_dir / f"{stem}.png", np.concatenate([img, ref], axis=1))
@@ -128,71 +129,121 @@ def eta_rmse(field, truth, box, res: int = 48, eval_fn=None) -> float:
     return float(np.sqrt(np.mean((eta - truth.eval(g)[0]) ** 2)))
 
 
+def _guarded(result: dict, what: str, fn):
+    """fn() or None: a score that fails is named in result["scoring_errors"] rather than
+    raised, so that a finished fit always leaves its results (SPEC: scoring never loses a
+    run). Interrupts still stop."""
+    try:
+        return fn()
+    except Exception as exc:  # noqa: BLE001 - any failure of one score must spare the others
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        result.setdefault("scoring_errors", []).append(f"{what}: {msg}")
+        return None
+
+
 def score_field(fit, field=None, out_dir: Path | None = None) -> dict:
     """Test-view PSNR and SSIM, eta RMSE and chamfer distance of a field (default: the
-    fit's) on the fit's dataset."""
+    fit's) on the fit's dataset. Each score that cannot be had is None, and its failure is
+    listed in "scoring_errors"."""
     field = field or fit.field
-    tracer = _tracer(fit, field)  # evaluates eta on the device too: hash grids are slow in NumPy
-    views = render_test_views(fit, out_dir, fit.cfg.test_views, tracer=tracer)
-    result = {
-        "test_psnr": float(np.mean([v["psnr"] for v in views])) if views else None,
-        "test_ssim": float(np.mean([v["ssim"] for v in views])) if views else None,
-        "views": views,
-    }
+    result: dict = {"test_psnr": None, "test_ssim": None, "views": []}
+    # evaluates eta on the device too: hash grids are slow in NumPy
+    tracer = _guarded(result, "tracer", lambda: _tracer(fit, field))
+    if tracer is None:
+        return result
+    views = _guarded(
+        result,
+        "test views",
+        lambda: render_test_views(fit, out_dir, fit.cfg.test_views, tracer=tracer),
+    )
+    if views:
+        result["test_psnr"] = float(np.mean([v["psnr"] for v in views]))
+        result["test_ssim"] = float(np.mean([v["ssim"] for v in views]))
+        result["views"] = views
     truth = scene_truth(fit.ds)
     if truth is not None:
-        result["eta_rmse"] = eta_rmse(field, truth, fit.ds.box, eval_fn=tracer.eval_field)
-    chamfer = surface_chamfer(field, fit.ds, eval_fn=tracer.eval_field)
+        result["eta_rmse"] = _guarded(
+            result,
+            "eta RMSE",
+            lambda: eta_rmse(field, truth, fit.ds.box, eval_fn=tracer.eval_field),
+        )
+    chamfer = _guarded(
+        result, "chamfer", lambda: surface_chamfer(field, fit.ds, eval_fn=tracer.eval_field)
+    )
     if chamfer is not None:  # inf: eta never reaches the level, there is no surface
         result["chamfer_mm"] = chamfer if np.isfinite(chamfer) else None
     return result
+
+
+def _warn(fit, scores: dict) -> None:
+    for line in scores.get("scoring_errors", []):
+        fit.stream.write(f"warning: scoring failed, {line}\n")
 
 
 def surface_chamfer(field, ds, eval_fn=None) -> float | None:
     """Chamfer distance (mm) from the surface of eta halfway between 1 and the scene's upper
     index to the dataset's ground-truth surface; None without one (or without a crossing:
     then the surface is missing, and inf is returned)."""
+    from .mesh import read_mesh
     from .metrics import chamfer_distance, eta_surface
-    from .synth import read_ply
 
     gt = ds.root / ds.scene.ground_truth.get("surface", "gt_surface.ply")
     if not gt.is_file():
         return None
+    truth = read_mesh(gt)  # first: a bad file is reported even when there is no surface
     level = 1 + (ds.scene.eta_range[1] - 1) / 2
     mesh = eta_surface(field, ds.box, level, eval_fn=eval_fn)
     if mesh is None:
         return float("inf")
-    return chamfer_distance(mesh, read_ply(gt))
+    return chamfer_distance(mesh, truth)
 
 
 def write_start_report(fit, seconds: float) -> dict:
     """Scores of the start (before any gradient step) in start.json, so that every run shows
     what the optimiser added (write_fit_report puts them beside the final ones)."""
     scores = {k: v for k, v in score_field(fit).items() if k != "views"}
+    _warn(fit, scores)
     scores["seconds"] = seconds
     with atomic_path(fit.out / "start.json", suffix=".json") as tmp:
         tmp.write_text(json.dumps(scores, indent=2))
     return scores
 
 
+def _metric_rows(path: Path) -> list[dict]:
+    return [json.loads(ln) for ln in path.read_text().splitlines() if ln.strip()]
+
+
 def write_fit_report(fit) -> dict:
+    """results.json of a finished run, with whatever could be scored: plots and scores that
+    fail are listed in "scoring_errors" and warned about, never raised."""
     out = fit.out
-    plot_metrics(out / "metrics.jsonl", out / "loss.png")
-    plot_slices(fit.field, fit.ds.box, out / "slices.png", truth=scene_truth(fit.ds))
-    rows = [json.loads(ln) for ln in (out / "metrics.jsonl").read_text().splitlines() if ln]
-    result = {
+    result: dict = {
         "iterations": fit.it,
-        "train_seconds": float(sum(r["seconds"] for r in rows)),
-        "final_loss": rows[-1]["loss"] if rows else None,
         "best_iteration": fit.best[1],
         "best_val_loss": float(fit.best[0]) if np.isfinite(fit.best[0]) else None,
-        **score_field(fit, out_dir=out / "test"),
     }
+    rows = _guarded(result, "metrics.jsonl", lambda: _metric_rows(out / "metrics.jsonl")) or []
+    result["train_seconds"] = float(sum(r.get("seconds", 0.0) for r in rows))
+    result["final_loss"] = rows[-1].get("loss") if rows else None
+    _guarded(result, "loss.png", lambda: plot_metrics(out / "metrics.jsonl", out / "loss.png"))
+    _guarded(
+        result,
+        "slices.png",
+        lambda: plot_slices(fit.field, fit.ds.box, out / "slices.png", truth=scene_truth(fit.ds)),
+    )
+    scores = score_field(fit, out_dir=out / "test")
+    errors = result.pop("scoring_errors", []) + scores.pop("scoring_errors", [])
+    result.update(scores)
     start = out / "start.json"
     if start.is_file():  # runs made before start.json existed have none
-        result["start"] = json.loads(start.read_text())
-        if result["start"].get("test_psnr") is not None and result["test_psnr"] is not None:
-            result["psnr_gain_over_start"] = result["test_psnr"] - result["start"]["test_psnr"]
+        result["start"] = _guarded(result, "start.json", lambda: json.loads(start.read_text()))
+        errors += result.pop("scoring_errors", [])
+        begun = (result["start"] or {}).get("test_psnr")
+        if begun is not None and result["test_psnr"] is not None:
+            result["psnr_gain_over_start"] = result["test_psnr"] - begun
+    if errors:
+        result["scoring_errors"] = errors
+        _warn(fit, result)
     with atomic_path(out / "results.json", suffix=".json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))
     return result

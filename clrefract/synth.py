@@ -22,7 +22,8 @@ from .errors import ClrefractError
 from .family import FAMILY, make_shape
 from .fields.analytic import Blobs, Drop, Luneburg, Prism, Sphere
 from .fields.base import Box
-from .imageio import atomic_path, write_exr_rgb, write_png_srgb
+from .imageio import write_exr_rgb, write_png_srgb
+from .mesh import write_mesh
 from .progress import Progress
 
 SOLIDS = ("sphere", "prism", "drop")
@@ -104,33 +105,6 @@ def _ray_renderer(name: str, obj, box: Box, runtime):
     return trace
 
 
-def write_ply(path: Path, verts: np.ndarray, faces: np.ndarray) -> None:
-    """Binary little-endian PLY triangle mesh."""
-    header = (
-        f"ply\nformat binary_little_endian 1.0\ncomment clrefract ground truth, mm\n"
-        f"element vertex {len(verts)}\nproperty float x\nproperty float y\n"
-        f"property float z\nelement face {len(faces)}\n"
-        "property list uchar int vertex_indices\nend_header\n"
-    )
-    f = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    f["n"], f["i"] = 3, faces
-    with atomic_path(path, suffix=".ply") as tmp, open(tmp, "wb") as fh:
-        fh.write(header.encode())
-        fh.write(np.asarray(verts, "<f4").tobytes())
-        fh.write(f.tobytes())
-
-
-def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    head = data[:end].decode().splitlines()
-    nv = int(next(ln for ln in head if ln.startswith("element vertex")).split()[-1])
-    nf = int(next(ln for ln in head if ln.startswith("element face")).split()[-1])
-    verts = np.frombuffer(data, "<f4", nv * 3, end).reshape(nv, 3)
-    f = np.frombuffer(data, [("n", "u1"), ("i", "<i4", (3,))], nf, end + nv * 12)
-    return verts.astype(np.float64), f["i"].astype(np.int64)
-
-
 def surface_mesh(obj, spacing: float = 0.4):
     """Marching cubes of the object's sharp surface: the signed distance for solids, the
     level halfway between 1 and the peak index for graded scenes. Family shapes mesh
@@ -201,7 +175,7 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) 
     t_views = time.perf_counter() - t_start
     VoxelGrid.from_field(obj, box, opt.volume_res, "trilinear").save(out / "gt_eta.npz")
     verts, faces = surface_mesh(obj)
-    write_ply(out / "gt_surface.ply", verts, faces)
+    write_mesh(out / "gt_surface.ply", verts, faces)
     eta_hi = float(obj.eta_max)
     scene = Scene(
         box=box,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -10,6 +9,7 @@ import numpy as np
 
 from .errors import ClrefractError
 from .fields.base import Box, Field
+from .limits import check_count, check_device_buffer, max_steps_for
 from .runtime import Runtime, default_runtime
 
 INTEGRATORS = ("rkn4", "rk4", "euler")
@@ -67,21 +67,18 @@ class Tracer:
         runtime: Runtime | None = None,
         adjoint: bool = False,
     ):
-        if not (isinstance(step, int | float) and math.isfinite(step) and step > 0):
-            raise ClrefractError(f"step must be a positive number of mm, got {step!r}")
+        box = box or Box()
+        # a ray bent inside the box rarely travels more than a few diagonals
+        default_cap = max_steps_for(step, float(np.linalg.norm(box.size)))
         if integrator not in INTEGRATORS:
             raise ClrefractError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
         self.runtime = runtime or default_runtime()
         self.runtime.check_precision(precision)
-        self.field, self.box, self.step = field, box or Box(), float(step)
+        self.field, self.box, self.step = field, box, float(step)
         self.integrator, self.precision = integrator, precision
         self.lanes = lanes or self.runtime.default_lanes(precision)
         self.runtime.check_lanes(self.lanes, precision)
-        if max_steps is None:
-            # a ray bent inside the box rarely travels more than a few diagonals
-            diag = float(np.linalg.norm(self.box.size))
-            max_steps = int(math.ceil(4 * diag / self.step))
-        self.max_steps = int(max_steps)
+        self.max_steps = default_cap if max_steps is None else check_count("max_steps", max_steps)
         self.dtype = self.runtime.real_dtype(precision)
         defines = {**field.defines(), **self.box.defines(), "LANES": self.lanes}
         defines[f"INTEGRATOR_{integrator.upper()}"] = 1
@@ -109,6 +106,12 @@ class Tracer:
         cl = self.runtime.cl
         slots = max(self.max_steps // every, 1)
         nbytes = slots * 6 * n_padded * np.dtype(self.dtype).itemsize
+        check_device_buffer(
+            f"step {self.step:g} mm: the backward pass's states of {n_padded} rays every "
+            f"{every} steps",
+            nbytes,
+            self.runtime.info,
+        )
         return cl.Buffer(self.runtime.context, cl.mem_flags.READ_WRITE, nbytes)
 
     def upload_field(self) -> None:

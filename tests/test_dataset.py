@@ -11,8 +11,9 @@ from clrefract.cli import main
 from clrefract.dataset import Dataset, check_dataset
 from clrefract.fields.analytic import Sphere
 from clrefract.imageio import read_exr_rgb, write_exr_rgb
+from clrefract.mesh import read_mesh
 from clrefract.snell import SnellRenderer
-from clrefract.synth import MakeOptions, make_dataset, read_ply, scene_object
+from clrefract.synth import MakeOptions, make_dataset, scene_object
 from clrefract.tracer import Tracer
 
 
@@ -31,7 +32,7 @@ def test_dataset_has_the_protocol_layout(sphere_ds):
     scene = json.loads((root / "scene.json").read_text())
     assert scene["object"]["kind"] == "sphere" and scene["eta_range"] == [1.0, 1.5]
     assert scene["ground_truth"]["renderer"] == "snell"
-    verts, faces = read_ply(root / "gt_surface.ply")
+    verts, faces = read_mesh(root / "gt_surface.ply")
     r = np.linalg.norm(verts, axis=1)
     assert np.abs(r - 20.0).max() < 0.2 and len(faces) > 1000
     assert check_dataset(root) == []

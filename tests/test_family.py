@@ -26,10 +26,11 @@ from clrefract.family import (
 )
 from clrefract.fields.analytic import Sphere
 from clrefract.fields.voxel import VoxelGrid
+from clrefract.mesh import read_mesh
 from clrefract.report import scene_truth
 from clrefract.snell import SnellRenderer
 from clrefract.snell_sdf import SdfSnellRenderer, snell_sdf_numpy
-from clrefract.synth import MakeOptions, make_dataset, read_ply
+from clrefract.synth import MakeOptions, make_dataset
 from clrefract.tracer import Status
 
 
@@ -267,7 +268,7 @@ def test_family_dataset_is_valid_and_matches_the_renderer(tmp_path):
     expect[~ok] = 0.0
     assert np.array_equal(ds.image(cam), expect.reshape(cam.height, cam.width, 3))
     # ground truth surface on the zero set, eta volume eta inside and 1 far outside
-    verts, faces = read_ply(tmp_path / "gt_surface.ply")
+    verts, faces = read_mesh(tmp_path / "gt_surface.ply")
     assert len(faces) > 1000 and np.abs(shape.distance(verts)).max() < 1e-4  # float32 PLY
     truth = scene_truth(ds)  # what the fit's eta RMSE is measured against
     assert isinstance(truth, RandomSolid) and truth.capsules == shape.capsules
