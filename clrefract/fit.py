@@ -648,7 +648,9 @@ class Fit:
     def _fixed_batch(self, tag: int) -> np.ndarray:
         """A batch of training rays that depends only on (seed, tag)."""
         rng = np.random.default_rng([self.cfg.seed, tag])
-        return self._pool[rng.integers(0, len(self._pool), size=min(self.cfg.batch, len(self._pool)))]
+        return self._pool[
+            rng.integers(0, len(self._pool), size=min(self.cfg.batch, len(self._pool)))
+        ]
 
     def _forward_loss(self, idx: np.ndarray) -> float:
         """Loss of the current field on training rays idx, against the sharp environment

@@ -653,7 +653,10 @@ class HashGridField(Field):
             adam.step(p, self._reverse2(ob, omb, mu, tape, p), lr_scale=0.1 ** (it / iterations))
         self.set_data(p)
         err = np.concatenate(
-            [self.eval(pts[a : a + _CHUNK])[0] - eta[a : a + _CHUNK] for a in range(0, len(pts), _CHUNK)]
+            [
+                self.eval(pts[a : a + _CHUNK])[0] - eta[a : a + _CHUNK]
+                for a in range(0, len(pts), _CHUNK)
+            ]
         )
         return float(np.sqrt(np.mean(err**2)))
 
