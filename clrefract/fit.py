@@ -65,6 +65,7 @@ class FitConfig:
     hidden: int = 32
     layers: int = 2
     eta_max: float = 0.0  # 0: the scene's upper eta bound
+    distil_iterations: int = 1000  # fitting the hash grid to the level-set start
     # optimisation
     iterations: int = 600
     batch: int = 8192
@@ -239,6 +240,23 @@ def make_field(cfg: FitConfig, box, eta_max: float, res: int):
     return HashGridField(hc, box, seed=cfg.seed)
 
 
+def fit_to_field(field, source, width: float, iterations: int, seed: int = 0) -> float:
+    """Fit a hash grid to another field's eta and gradient at points of its box: uniform
+    ones, and as many again around the interfaces (where grad eta is not zero), jittered by
+    half the interface `width`. Returns the RMS error of eta."""
+    rng = np.random.default_rng([seed, 3])
+    lo, size = np.asarray(field.box.lo), field.box.size
+    pts = lo + rng.uniform(size=(200_000, 3)) * size
+    grad = source.eval(pts)[1]
+    band = pts[np.linalg.norm(grad, axis=1) > 1e-3]
+    if len(band):
+        jitter = rng.normal(scale=width / 2, size=(200_000, 3))
+        more = np.clip(band[rng.integers(0, len(band), 200_000)] + jitter, lo, lo + size)
+        pts = np.concatenate([pts, more])
+    eta, grad = source.eval(pts)
+    return field.fit_values(pts, eta, grad, scale=width, iterations=iterations, seed=seed)
+
+
 class Fit:
     """One fitting run on one dataset, in one run folder."""
 
@@ -323,27 +341,12 @@ class Fit:
         as its output bias alone would take thousands of steps to reach glass."""
         from dataclasses import replace
 
-        from .fields.levelset import LevelSetField
-
         guide_cfg = replace(self.cfg, field="levelset", step=self.cfg.width / 4)
         self._bind(make_field(guide_cfg, self.box, self.eta_max, res), step=guide_cfg.step)
         self._fill_hull()
-        guide = self.field
-        assert isinstance(guide, LevelSetField)
         field = self._make_field(0)
-        rng = np.random.default_rng([self.cfg.seed, 3])
-        lo, size = np.asarray(self.box.lo), self.box.size
-        pts = lo + rng.uniform(size=(200_000, 3)) * size
-        eta = guide.eval(pts)[0]
-        # as many points again in the interface band, where the field must be sharp
-        band = pts[(eta > 1.0 + 1e-6) & (eta < guide.eta - 1e-6)]
-        if len(band):
-            jitter = rng.normal(scale=self.cfg.width / 2, size=(200_000, 3))
-            more = np.clip(band[rng.integers(0, len(band), 200_000)] + jitter, lo, lo + size)
-            pts = np.concatenate([pts, more])
-        eta, grad = guide.eval(pts)
-        rms = field.fit_values(
-            pts, eta, grad, scale=self.cfg.width, iterations=1000, seed=self.cfg.seed
+        rms = fit_to_field(
+            field, self.field, self.cfg.width, self.cfg.distil_iterations, self.cfg.seed
         )
         self.init_info["distilled_rms"] = rms
         self.stream.write(f"start: hash grid fitted to the level-set start (eta RMS {rms:.4f})\n")

@@ -8,7 +8,8 @@ metrics:
   scored from the run itself before its first step;
 - fit: after the iterations, with the run's whole wall time (start included);
 - ceiling: the ground truth on the same grid (the best this grid can do): its eta sampled at
-  the nodes of a voxel grid, or its signed distance at the nodes of a level set.
+  the nodes of a voxel grid, its signed distance at the nodes of a level set, or a hash
+  grid fitted to its eta and gradient the way a hash-grid start is fitted to its guide.
 
 For level sets the index column gives the start's and the fit's index beside the truth's.
 
@@ -72,6 +73,11 @@ def bench_scene(scene: str, args) -> dict:
         ceiling = LevelSetField.from_sdf(
             lambda p: truth.sdf(p)[0], fit.box, args.grid, truth.eta, cfg.width
         )
+    elif cfg.field == "hashgrid":  # the truth fitted the way the start is
+        from clrefract.fit import fit_to_field
+
+        ceiling = fit.field.__class__(fit.field.config, fit.box, seed=cfg.seed)
+        fit_to_field(ceiling, truth, cfg.width, cfg.distil_iterations, cfg.seed)
     else:
         ceiling = VoxelGrid.from_field(
             truth, fit.box, args.grid, interp=cfg.interp, eta_max=fit.eta_max
@@ -99,7 +105,7 @@ def main() -> None:
     )
     ap.add_argument("--res", type=int, default=128, help="image size of the views")
     ap.add_argument("--grid", type=int, default=64, help="grid resolution (voxel or level set)")
-    ap.add_argument("--field", default="levelset", choices=["levelset", "voxel"])
+    ap.add_argument("--field", default="levelset", choices=["levelset", "voxel", "hashgrid"])
     ap.add_argument("--width", type=float, default=1.0, help="level-set interface width, mm")
     ap.add_argument("--iterations", type=int, default=100)
     ap.add_argument("--batch", type=int, default=8192)

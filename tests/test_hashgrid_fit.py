@@ -1,0 +1,82 @@
+"""`clrefract fit --field hashgrid` on a small glass sphere: it starts where a level set
+does (the visual hull filled by line search, fitted into the hash grid), in the object's
+box, and its run folder works like the other fields' (resume, field file, scores)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from clrefract.fields import load_field_file
+from clrefract.fields.hashgrid import HashGridField
+from clrefract.fit import held_out_views, load_config, prepare_fit
+from clrefract.synth import MakeOptions, make_dataset
+
+
+@pytest.fixture(scope="module")
+def sphere(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sphere")
+    make_dataset("sphere", out, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
+    return out
+
+
+def _cfg(**kw):
+    base = dict(
+        field="hashgrid",
+        res=32,
+        iterations=4,
+        batch=2048,
+        distil_iterations=300,
+        levels=6,
+        log2_table=14,
+        hidden=16,
+        validate_every=2,
+        checkpoint_every=2,
+        test_views=2,
+    )
+    base.update(kw)
+    return load_config(None, base)
+
+
+def test_hash_grid_starts_from_the_hull_in_the_objects_box(sphere, tmp_path):
+    fit = prepare_fit(sphere, tmp_path / "run", _cfg())
+    info = json.loads((tmp_path / "run" / "init.json").read_text())
+    start = json.loads((tmp_path / "run" / "start.json").read_text())
+    assert abs(info["eta"] - 1.5) < 0.06, info
+    assert info["distilled_rms"] < 0.03, info
+    assert np.all(fit.box.size < 70) and np.all(fit.box.size > 40)
+    # a start at eta = 1 (the field's own initialisation) renders the empty box
+    assert start["test_psnr"] > EMPTY_PSNR_MARGIN + _empty_psnr(fit), start
+    assert start["chamfer_mm"] < 1.0, start
+    result = fit.run()
+    assert np.isfinite(result["test_psnr"])
+    assert "start" in result and "psnr_gain_over_start" in result
+    field = load_field_file(tmp_path / "run" / "field.npz")
+    assert isinstance(field, HashGridField)
+    assert field.box.to_dict() == fit.box.to_dict()
+
+
+EMPTY_PSNR_MARGIN = 3.0  # dB the start must beat doing nothing by
+
+
+def _empty_psnr(fit) -> float:
+    from clrefract.fields.voxel import VoxelGrid
+    from clrefract.report import score_field
+
+    return score_field(fit, VoxelGrid(np.ones((8, 8, 8)), fit.box))["test_psnr"]
+
+
+def test_held_out_views_are_spread_and_never_trained_on(sphere, tmp_path):
+    cfg = _cfg(val_views=4)
+    assert held_out_views(cfg, 20) == [2, 7, 12, 17]
+    assert held_out_views(cfg, 9) == [4]
+    assert held_out_views(cfg, 4) == []
+    fit = prepare_fit(sphere, tmp_path / "run", _cfg(field="levelset", val_views=4))
+    n = fit.ds.train[0].width * fit.ds.train[0].height
+    held = {int(i) // n for i in fit._held}
+    assert held == set(held_out_views(cfg, len(fit.ds.train)))
+    from clrefract.fit import batch_indices
+
+    for it in range(3):
+        idx = batch_indices(fit.cfg, it, fit._pool)
+        assert not set((idx // n).tolist()) & held
