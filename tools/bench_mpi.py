@@ -87,6 +87,14 @@ def worker(args) -> None:
         "comm_seconds_per_iteration": sharded.comm_seconds / args.iterations,
         "params": args.res**3,
     }
+    if ranks.size == 1:  # the cost of chunking itself: the same batches in one piece
+        plain = []
+        for it in range(args.iterations):
+            idx = np.random.default_rng([0, it]).integers(0, len(o), args.batch)
+            t0 = time.perf_counter()
+            engine.loss_and_grad(o[idx], d[idx], rgb[idx], env)
+            plain.append(time.perf_counter() - t0)
+        result["unchunked_rays_per_s"] = args.batch / float(np.median(plain))
     if ranks.size > 1:
         result["exchange"] = _time_exchange(sharded, args.repeats)
     if ranks.root:
@@ -209,6 +217,11 @@ def main() -> None:
         print(
             f"{n:5d} {r['rays_per_s']:10.0f} {r['seconds_per_iteration']:8.3f} "
             f"{r['comm_seconds_per_iteration']:12.4f} {r['rays_per_s'] / base:9.2f}"
+        )
+    if "unchunked_rays_per_s" in runs.get(1, {}):
+        print(
+            "one rank, the batch in one piece (no MPI): "
+            f"{runs[1]['unchunked_rays_per_s']:.0f} rays/s"
         )
     result = {"runs": runs, "cpus": os.cpu_count()}
     two = next((r for n, r in runs.items() if n > 1), None)
