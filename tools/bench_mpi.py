@@ -2,7 +2,7 @@
 the fixed-order gradient exchange against the gradient's size, and a model of where adding
 ranks stops paying.
 
-    python tools/bench_mpi.py [--ranks 1,2] [--batch 8192] [--res 32] [--iterations 5]
+    python tools/bench_mpi.py [--ranks 1,2] [--batch 8192] [--res 32] [--iterations 5] [--rounds 3]
         [--net-gbs 10] [--json bench_results/mpi.json]
 
 The driver starts `mpiexec -n N` of this file for each rank count (the workers print one JSON
@@ -189,6 +189,7 @@ def main() -> None:
     ap.add_argument("--chunks", type=int, default=16)
     ap.add_argument("--iterations", type=int, default=5)
     ap.add_argument("--repeats", type=int, default=5, help="timings of each exchange size")
+    ap.add_argument("--rounds", type=int, default=3, help="runs of each rank count (best kept)")
     ap.add_argument("--net-gbs", type=float, default=10.0, help="cluster link of the model")
     ap.add_argument("--json", default="bench_results/mpi.json")
     args = ap.parse_args()
@@ -207,7 +208,14 @@ def main() -> None:
         f"--iterations={args.iterations}",
         f"--repeats={args.repeats}",
     ]
-    runs = {int(n): mpiexec(int(n), argv) for n in args.ranks.split(",")}
+    # rank counts take turns, and each keeps its fastest round: on a shared machine the
+    # other users' load comes and goes, and the fastest round is the least disturbed
+    runs: dict[int, dict] = {}
+    for _ in range(args.rounds):
+        for n in (int(x) for x in args.ranks.split(",")):
+            r = mpiexec(n, argv)
+            if n not in runs or r["rays_per_s"] > runs[n]["rays_per_s"]:
+                runs[n] = r
     print(
         f"\nsharded gradient, voxel {args.res}^3 float32, batch {args.batch}, {args.chunks} chunks"
     )
