@@ -75,17 +75,23 @@ def worker(args) -> None:
     sharded.loss_and_grad(o[idx], d[idx], rgb[idx], env)  # builds the kernels
     times = []
     sharded.comm_seconds = 0.0
+    cpu0 = _cpu_seconds()
     for it in range(args.iterations):
         idx = np.random.default_rng([0, it]).integers(0, len(o), args.batch)
         t0 = time.perf_counter()
         sharded.loss_and_grad(o[idx], d[idx], rgb[idx], env)
         times.append(time.perf_counter() - t0)
+    # CPU seconds of every rank (OpenCL threads included): rays per CPU-second does not
+    # depend on how much of a shared machine the others leave us, wall-clock rates do
+    cpu = _cpu_seconds() - cpu0
+    cpu = sum(ranks.comm.allgather(cpu)) if ranks.comm is not None else cpu
     result = {
         "ranks": ranks.size,
         "rays_per_s": args.batch / float(np.median(times)),
         "seconds_per_iteration": float(np.median(times)),
         "comm_seconds_per_iteration": sharded.comm_seconds / args.iterations,
         "params": args.res**3,
+        "rays_per_cpu_s": args.batch * args.iterations / cpu,
     }
     if ranks.size == 1:  # the cost of chunking itself: the same batches in one piece
         plain = []
@@ -99,6 +105,13 @@ def worker(args) -> None:
         result["exchange"] = _time_exchange(sharded, args.repeats)
     if ranks.root:
         print("RESULT " + json.dumps(result), flush=True)
+
+
+def _cpu_seconds() -> float:
+    import resource
+
+    u = resource.getrusage(resource.RUSAGE_SELF)
+    return u.ru_utime + u.ru_stime
 
 
 def _time_exchange(sharded, repeats: int) -> dict:
@@ -219,12 +232,16 @@ def main() -> None:
     print(
         f"\nsharded gradient, voxel {args.res}^3 float32, batch {args.batch}, {args.chunks} chunks"
     )
-    print(f"{'ranks':>5} {'rays/s':>10} {'s/iter':>8} {'comm s/iter':>12} {'speed-up':>9}")
-    base = runs[min(runs)]["rays_per_s"]
+    print(
+        f"{'ranks':>5} {'rays/s':>10} {'s/iter':>8} {'comm s/iter':>12} {'speed-up':>9} "
+        f"{'rays/cpu-s':>11} {'efficiency':>10}"
+    )
+    base = runs[min(runs)]
     for n, r in runs.items():
         print(
             f"{n:5d} {r['rays_per_s']:10.0f} {r['seconds_per_iteration']:8.3f} "
-            f"{r['comm_seconds_per_iteration']:12.4f} {r['rays_per_s'] / base:9.2f}"
+            f"{r['comm_seconds_per_iteration']:12.4f} {r['rays_per_s'] / base['rays_per_s']:9.2f} "
+            f"{r['rays_per_cpu_s']:11.0f} {r['rays_per_cpu_s'] / base['rays_per_cpu_s']:10.2f}"
         )
     if "unchunked_rays_per_s" in runs.get(1, {}):
         print(
