@@ -181,6 +181,7 @@ class ShardedEngine:
         check_chunks(chunks)
         self.engine, self.ranks, self.chunks = engine, ranks, chunks
         self.comm_seconds = 0.0  # time spent in collectives, for the benchmark
+        self.rays_traced = 0  # by this rank: its share of the batches
 
     def __getattr__(self, name):
         return getattr(self.engine, name)
@@ -197,6 +198,7 @@ class ShardedEngine:
             s = slice(edges[j], edges[j + 1])
             m = s.stop - s.start
             leaf = np.zeros(n_par + 1)  # gradient, then the chunk's share of the loss
+            self.rays_traced += m
             if m:
                 try:
                     r = self.engine.loss_and_grad(origins[s], dirs[s], targets[s], env, weights[s])

@@ -38,8 +38,11 @@ def main() -> None:
     if mode == "grad":
         engine, o, d, t, env = gradient_case(dataset)
         chunks = int(sys.argv[4]) if len(sys.argv) > 4 else 16
-        r = parallel.ShardedEngine(engine, ranks, chunks).loss_and_grad(o, d, t, env)
-        grads = ranks.comm.allgather(r.grad) if ranks.comm is not None else [r.grad]
+        sharded = parallel.ShardedEngine(engine, ranks, chunks)
+        r = sharded.loss_and_grad(o, d, t, env)
+        comm = ranks.comm
+        grads = comm.allgather(r.grad) if comm is not None else [r.grad]
+        traced = comm.allgather(sharded.rays_traced) if comm is not None else [len(o)]
         if ranks.root:
             np.savez(
                 sys.argv[3],
@@ -48,6 +51,7 @@ def main() -> None:
                 status=r.status,
                 radiance=r.radiance,
                 size=ranks.size,
+                traced=traced,  # rays each rank traced
                 # every rank must hold the very same gradient (their Adam steps must agree)
                 spread=max(float(np.abs(g - r.grad).max()) for g in grads),
             )

@@ -122,6 +122,7 @@ def test_two_ranks_give_the_one_rank_gradient(dataset, tmp_path):
     _run(2, str(HERE / "mpi_worker.py"), "grad", str(dataset), str(tmp_path / "g2.npz"))
     two = np.load(tmp_path / "g2.npz")
     assert int(two["size"]) == 2
+    assert two["traced"].tolist() == [1500, 1500]  # each rank traced its half, no more
     assert float(two["spread"]) == 0.0  # both ranks hold the very same numbers
     engine, o, d, t, env = gradient_case(dataset)
     one = engine.loss_and_grad(o, d, t, env)  # one process, no chunks at all
