@@ -213,3 +213,13 @@ def test_two_rank_fit_and_resume_across_rank_counts(dataset, tmp_path, monkeypat
     _run(2, *cli, "fit", str(dataset), "--out", str(b), "--resume")
     assert np.abs(_params(b) - ref).max() < 1e-10
     assert np.allclose(_losses(b), _losses(one), rtol=1e-10, atol=0)
+
+
+def test_a_failure_on_rank_0_ends_every_rank(tmp_path):
+    """Rank 0 refuses a run (here: nothing to resume); the other ranks must not wait for it
+    forever, and the message is rank 0's."""
+    out = _run(2, "-m", "clrefract.cli", "fit", str(tmp_path), "--out", str(tmp_path / "r"),
+               "--resume", check=False)  # fmt: skip
+    assert out.returncode != 0
+    assert "no run to resume" in out.stderr
+    assert "rank 1: rank 0 failed" in out.stderr
