@@ -274,10 +274,11 @@ def run_fit(dataset, out, cfg, resume: bool = False, stream=None) -> dict:
         if error is not None:  # rank 0 names the problem; the others just stop
             raise ClrefractError(f"rank {ranks.rank}: rank 0 failed")
         cfg = load_config(out / "config.toml", {}) if resume else cfg
-        with tempfile.TemporaryDirectory(prefix=f"clrefract-rank{ranks.rank}-") as scratch:
-            fit = _Follower(dataset, out, cfg, stream=open(os.devnull, "w"))  # noqa: SIM115
+        scratch = tempfile.TemporaryDirectory(prefix=f"clrefract-rank{ranks.rank}-")
+        with open(os.devnull, "w") as quiet, scratch:
+            fit = _follower(dataset, out, cfg, quiet)
             fit.load_checkpoint()
-            fit.out = Path(scratch)  # metrics and field.npz of this rank: thrown away
+            fit.out = Path(scratch.name)  # metrics and field.npz of this rank: thrown away
             fit.run()
         return {}
     except ClrefractError:
@@ -290,20 +291,15 @@ def run_fit(dataset, out, cfg, resume: bool = False, stream=None) -> dict:
         raise
 
 
-def _follower_class():
+def _follower(dataset, out, cfg, stream):
+    """A rank other than 0: it fits like rank 0 but writes nothing of the run."""
     from .fit import Fit
 
     class Follower(Fit):
-        """A rank other than 0: it fits like rank 0 but writes nothing of the run."""
-
         def save_checkpoint(self) -> None:
             pass
 
         def finish(self) -> dict:
             return {}
 
-    return Follower
-
-
-def _Follower(*args, **kwargs):  # noqa: N802 - builds the class on first use (import order)
-    return _follower_class()(*args, **kwargs)
+    return Follower(dataset, out, cfg, stream=stream)
