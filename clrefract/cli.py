@@ -290,6 +290,8 @@ def _cmd_fit(args) -> int:
         _check_resume_flags(Path(args.out), overrides, args.config)
     cfg = load_config(Path(args.config) if args.config else None, overrides)
     result = run_fit(Path(args.dataset), Path(args.out), cfg, resume=args.resume)
+    if not result:
+        return 0  # an MPI rank other than 0: rank 0 reports
     print(json.dumps({k: v for k, v in result.items() if k != "views"}, indent=2))
     return 0
 

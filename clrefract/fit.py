@@ -99,7 +99,10 @@ class FitConfig:
     loss: str = "srgb"
     queues: int = 1
     lanes: int = 0  # 0: device default
-    device: str = ""
+    device: str = ""  # under MPI: a comma-separated list is indexed by local rank
+    # under MPI, each batch is cut into this many pieces (a power of two) that are summed in
+    # one fixed order: any number of ranks up to it gives the same gradient (parallel.py)
+    chunks: int = 16
     seed: int = 0
     checkpoint_every: int = 50
     # loss on a fixed batch of training rays every this many iterations (0: never); the run
@@ -263,12 +266,13 @@ class Fit:
     """One fitting run on one dataset, in one run folder."""
 
     def __init__(self, dataset: Path, out: Path, cfg: FitConfig, stream=None):
+        from .parallel import device_for
         from .runtime import Runtime
 
         self.ds = Dataset(dataset)
         self.out, self.cfg = Path(out), cfg
         self.stream = stream or sys.stderr
-        self.runtime = Runtime(cfg.device or None, queues=cfg.queues)
+        self.runtime = Runtime(device_for(cfg.device), queues=cfg.queues)
         self.box = self.ds.box
         self.eta_max = cfg.eta_max or self.ds.scene.eta_range[1] * 1.05
         self.origins, self.dirs, self.rgb = self.ds.rays_and_pixels("train")
@@ -299,6 +303,7 @@ class Fit:
 
     def _bind(self, field, step: float = 0.0) -> None:
         from .gradient import GradientEngine
+        from .parallel import shard
 
         self.field = field
         self.params = np.array(field.data(), np.float64)
@@ -314,6 +319,7 @@ class Fit:
             checkpoint_every=self.cfg.backward_checkpoints,
             growth_max=self.cfg.adjoint_growth_max,
         )
+        self.engine = shard(self.engine, self.cfg.chunks)  # split over MPI ranks, if any
         self._update_free()
 
     def _groups(self):
@@ -886,6 +892,10 @@ def _run_box(run: Path):
 
 
 def run_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stream=None) -> dict:
+    from . import parallel
+
+    if parallel.world().size > 1:  # under mpiexec: rank 0 alone writes the run folder
+        return parallel.run_fit(dataset, out, cfg, resume, stream)
     return prepare_fit(dataset, out, cfg, resume, stream).run()
 
 

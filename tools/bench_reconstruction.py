@@ -16,6 +16,11 @@ For level sets the index column gives the start's and the fit's index beside the
     python tools/bench_reconstruction.py [--field levelset|voxel] [--suite paper|family]
         [--scenes sphere,prism,drop]
         [--res 128] [--grid 64] [--iterations 100] [--json bench_results/reconstruction.json]
+        [--shard i/n] [--merge]
+
+--shard i/n runs every n-th scene from the i-th and writes reconstruction.shard-i-of-n.json
+(n jobs of a cluster array, or n processes on one machine); --merge then reads all n, prints
+the whole table and writes --json.
 """
 
 from __future__ import annotations
@@ -115,15 +120,21 @@ def main() -> None:
     ap.add_argument("--data", default="bench_results/data")
     ap.add_argument("--runs", default="bench_results/runs")
     ap.add_argument("--json", default="bench_results/reconstruction.json")
+    ap.add_argument("--shard", default="", help="i/n: run every n-th scene from the i-th")
+    ap.add_argument("--merge", action="store_true", help="merge the shards' JSON files")
     args = ap.parse_args()
 
+    from clrefract import shards
     from clrefract.family import FAMILY
 
     suite = {"paper": ("sphere", "prism", "drop"), "family": FAMILY}[args.suite]
+    scenes = [s.strip() for s in args.scenes.split(",")] if args.scenes else list(suite)
     rows = []
-    for scene in args.scenes.split(",") if args.scenes else suite:
+    if args.merge:
+        rows = shards.merge(args.json, scenes)["scenes"]
+    for scene in [] if args.merge else shards.select(scenes, args.shard):
         print(f"== {scene}", file=sys.stderr)
-        rows.append(bench_scene(scene.strip(), args))
+        rows.append(bench_scene(scene, args))
     head = (
         f"{'scene':12} {'model':8} {'PSNR':>6} {'SSIM':>6} {'D_C mm':>7} {'eta RMSE':>9} "
         f"{'index':>6} {'time':>7}"
@@ -145,9 +156,10 @@ def main() -> None:
         for m in r.values():
             if isinstance(m, dict):
                 m.pop("views", None)
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps({"args": vars(args), "scenes": rows}, indent=2))
-    print(f"wrote {args.json}")
+    out = shards.path_for(args.json, "" if args.merge else args.shard)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"args": vars(args), "scenes": rows}, indent=2))
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -13,7 +13,9 @@ if [ "${1:-}" = "--pip-only" ]; then
   [ -x "$venv/bin/python" ] || python3 -m venv "$venv"
   "$venv/bin/python" -m pip install -q --upgrade pip
   # both pip CPU drivers: PoCL, and Intel's runtime for CPUs pip PoCL's LLVM 14 does not know
-  "$venv/bin/python" -m pip install -q ".[test,pocl,cpu]"
+  mpi=""
+  command -v mpiexec >/dev/null 2>&1 && mpi=",mpi"  # mpi4py needs the system's MPI library
+  "$venv/bin/python" -m pip install -q ".[test,pocl,cpu$mpi]"
   exit 0
 fi
 
@@ -25,11 +27,18 @@ if ! have_icd && command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
       pocl-opencl-icd ocl-icd-libopencl1 >/dev/null) || echo "setup: apt failed, using pip's drivers"
 fi
 
+# MPI for data-parallel fitting and its `mpiexec -n 2` test; optional (the test skips without)
+if ! command -v mpiexec >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
+  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+      openmpi-bin libopenmpi-dev >/dev/null) || echo "setup: no MPI from apt; MPI tests will skip"
+fi
+
 if [ ! -x .venv/bin/python ]; then
   python3 -m venv .venv
 fi
 extras="test"
 have_icd || extras="test,pocl,cpu"
+command -v mpiexec >/dev/null 2>&1 && extras="$extras,mpi"
 stamp=".venv/.clrefract-installed-$extras-$(sha1sum pyproject.toml | cut -c1-12)"
 if [ ! -f "$stamp" ]; then
   .venv/bin/python -m pip install -q --upgrade pip
