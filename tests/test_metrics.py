@@ -40,4 +40,23 @@ def test_psnr_ssim_of_identical_and_shifted_images():
     img = rng.random((32, 32, 3))
     assert psnr_ssim(img + 1e-9, img)[1] == pytest.approx(1.0)
     p, s = psnr_ssim(img + 0.01, img)
-    assert 30 < p < 60 and s < 1
+    assert s < 1
+    mse = np.mean((_srgb(img + 0.01) - _srgb(img)) ** 2)
+    assert p == pytest.approx(-10 * np.log10(mse), rel=1e-6)  # sRGB is taken in float32
+
+
+def _lin(s):
+    return ((s + 0.055) / 1.055) ** 2.4  # IEC 61966-2-1 above its linear toe
+
+
+def _srgb(x):
+    x = np.clip(x, 0, 1)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+
+
+def test_psnr_is_taken_on_clipped_srgb_values():
+    """sRGB 0.5 against 0.6 everywhere is 20 dB exactly; radiance above 1 counts as 1."""
+    ref = np.full((16, 16, 3), _lin(0.5))
+    assert psnr_ssim(np.full_like(ref, _lin(0.6)), ref)[0] == pytest.approx(20.0, abs=1e-4)
+    white = np.ones((16, 16, 3))
+    assert psnr_ssim(white * 7.0, white)[0] == np.inf
