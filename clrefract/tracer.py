@@ -53,6 +53,9 @@ class Tracer:
     step: the increment of sigma (arc length / eta) per integrator step, in mm.
     lanes: rays per work-item; None picks the device's default (16 on CPUs, 1 on GPUs).
     adjoint: also build the backward-pass kernel (fields with parameters only).
+    interface_steps: shorten steps that would cross a field's known kink (analytic fields:
+        the Luneburg surface, a solid's band edges) so that they land on it and the scheme
+        keeps its order there; False integrates across it (first order at the kink).
     """
 
     def __init__(
@@ -66,6 +69,7 @@ class Tracer:
         max_steps: int | None = None,
         runtime: Runtime | None = None,
         adjoint: bool = False,
+        interface_steps: bool = True,
     ):
         box = box or Box()
         # a ray bent inside the box rarely travels more than a few diagonals
@@ -80,8 +84,19 @@ class Tracer:
         self.runtime.check_lanes(self.lanes, precision)
         self.max_steps = default_cap if max_steps is None else check_count("max_steps", max_steps)
         self.dtype = self.runtime.real_dtype(precision)
-        defines = {**field.defines(), **self.box.defines(), "LANES": self.lanes}
+        # Rays are traced relative to the box centre where the field can move with it
+        # (analytic fields, forward only): float32 positions 1e4 mm from the world origin
+        # would otherwise resolve only ~1e-3 mm. Learned fields and the backward pass keep
+        # world coordinates (gradient.py launches the kernels with them).
+        centre = 0.5 * (np.asarray(box.lo, float) + np.asarray(box.hi, float))
+        shiftable = hasattr(field, "params_shifted") and not adjoint
+        self.offset = centre if shiftable else np.zeros(3)
+        kbox = Box(tuple(box.lo - self.offset), tuple(box.hi - self.offset), box.margin)
+        defines = {**field.defines(), **kbox.defines(), "LANES": self.lanes}
         defines[f"INTEGRATOR_{integrator.upper()}"] = 1
+        self.interface_steps = bool(interface_steps)
+        if not self.interface_steps:
+            defines["NO_INTERFACE_STEPS"] = 1
         sources = ["common.h", field.source, "trace.cl"]
         if adjoint:
             adj = getattr(field, "adjoint_source", None)
@@ -122,7 +137,7 @@ class Tracer:
         self._fp = cl.Buffer(
             ctx,
             mf.READ_ONLY | mf.COPY_HOST_PTR,
-            hostbuf=self._real(np.append(self.field.params(), 0.0)),
+            hostbuf=self._real(np.append(self._field_params(), 0.0)),
         )
         self._fd = cl.Buffer(
             ctx,
@@ -130,8 +145,20 @@ class Tracer:
             hostbuf=self._real(np.append(self.field.data(), 0.0)),
         )
 
+    def _field_params(self) -> np.ndarray:
+        if np.any(self.offset):
+            return self.field.params_shifted(self.offset)
+        return self.field.params()
+
     def _real(self, a) -> np.ndarray:
         return np.ascontiguousarray(a, dtype=self.dtype)
+
+    def _local(self, a, what: str) -> np.ndarray:
+        """World points to the kernels' frame, in float64 before any rounding."""
+        a = np.asarray(a, dtype=np.float64)
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise ClrefractError(f"{what} must have shape (n, 3), got {a.shape}")
+        return a - self.offset
 
     def _padded_columns(self, a: np.ndarray, what: str) -> tuple[list[np.ndarray], int]:
         a = np.asarray(a, dtype=np.float64)
@@ -174,7 +201,7 @@ class Tracer:
         self._enqueue(kernel, n_items, args, queue).finish()
 
     def trace(self, origins: np.ndarray, directions: np.ndarray) -> TraceResult:
-        o, n = self._padded_columns(origins, "ray origins")
+        o, n = self._padded_columns(self._local(origins, "ray origins"), "ray origins")
         d, _ = self._padded_columns(directions, "ray directions")
         if len(d[0]) != len(o[0]):
             raise ClrefractError("ray origins and directions differ in number")
@@ -193,29 +220,29 @@ class Tracer:
         vel = np.stack(v, axis=1)[:n].astype(np.float64)
         speed = np.linalg.norm(vel, axis=1)
         return TraceResult(
-            position=np.stack(p, axis=1)[:n].astype(np.float64),
+            position=np.stack(p, axis=1)[:n].astype(np.float64) + self.offset,
             direction=vel / speed[:, None],
             speed=speed,
             status=status[:n].copy(),
             steps=steps[:n].copy(),
-            last_position=np.stack(last, axis=1)[:n].astype(np.float64),
+            last_position=np.stack(last, axis=1)[:n].astype(np.float64) + self.offset,
             last_velocity=vel,
         )
 
     def propagate(self, x: np.ndarray, v: np.ndarray, n_steps: int):
         """Advance states (x, v) by n_steps integrator steps, ignoring the box."""
-        xs, n = self._padded_columns(x, "positions")
+        xs, n = self._padded_columns(self._local(x, "positions"), "positions")
         vs, _ = self._padded_columns(v, "velocities")
         args = [self.dtype(self.step), np.int32(n_steps)] + [InOut(a) for a in xs + vs]
         self._run(self._k_propagate, len(xs[0]) // self.lanes, args)
         return (
-            np.stack(xs, axis=1)[:n].astype(np.float64),
+            np.stack(xs, axis=1)[:n].astype(np.float64) + self.offset,
             np.stack(vs, axis=1)[:n].astype(np.float64),
         )
 
     def eval_field(self, pts: np.ndarray):
         """eta (n,) and grad eta (n, 3) computed by the device kernel."""
-        xs, n = self._padded_columns(pts, "points")
+        xs, n = self._padded_columns(self._local(pts, "points"), "points")
         m = len(xs[0])
         outs = [np.empty(m, self.dtype) for _ in range(4)]
         self._run(self._k_eval, m // self.lanes, xs + [Out(a) for a in outs])

@@ -18,6 +18,17 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
     return eta;
 }
 
+/* grad eta jumps at the surface: (r^2 - R^2) / 2R, about r - R there */
+#ifndef NO_INTERFACE_STEPS
+#define FIELD_INTERFACE 1
+#define INTERFACE_LO (REAL)0
+#define INTERFACE_HI (REAL)0
+inline realv field_interface(FIELD_PARAMS, realv x, realv y, realv z) {
+    realv px = x - fp[0], py = y - fp[1], pz = z - fp[2];
+    return (px * px + py * py + pz * pz - fp[3] * fp[3]) / (RV(2) * fp[3]);
+}
+#endif
+
 #elif defined(FIELD_MAXWELL)
 /* fp: cx cy cz R n0.  eta = n0 / (1 + r^2/R^2). */
 inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
@@ -189,4 +200,15 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
     *gz = k * nz;
     return RV(1) + dn * smoother(s);
 }
+
+/* The smoothstep's higher derivatives jump at the band edges sd = +-w/2. */
+#ifndef NO_INTERFACE_STEPS
+#define FIELD_INTERFACE 1
+#define INTERFACE_LO (-(REAL)0.5 * SOLID_W)
+#define INTERFACE_HI ((REAL)0.5 * SOLID_W)
+inline realv field_interface(FIELD_PARAMS, realv x, realv y, realv z) {
+    realv nx, ny, nz;
+    return solid_sdf(FIELD_ARGS, x, y, z, &nx, &ny, &nz);
+}
+#endif
 #endif

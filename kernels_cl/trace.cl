@@ -10,13 +10,19 @@ inline void field_D(FIELD_PARAMS, realv x, realv y, realv z, realv *dx, realv *d
     *dz = eta * gz;
 }
 
-inline void ode_step(FIELD_PARAMS, REAL h, realv *x, realv *y, realv *z, realv *vx, realv *vy,
-                     realv *vz) {
+/* One step's increments (dx, dv) from (x, v); h per lane (interface steps shorten it). The
+ * caller adds them (with compensated summation in trace_rays: at 1e-3 mm steps, float32
+ * x + h v would lose the increment's low bits on every step). */
+inline void ode_incr(FIELD_PARAMS, realv h, realv x0, realv y0, realv z0, realv vx0, realv vy0,
+                     realv vz0, realv *ix, realv *iy, realv *iz, realv *ivx, realv *ivy,
+                     realv *ivz) {
+    realv x_ = x0, y_ = y0, z_ = z0, vx_ = vx0, vy_ = vy0, vz_ = vz0;
+    realv *x = &x_, *y = &y_, *z = &z_, *vx = &vx_, *vy = &vy_, *vz = &vz_;
 #if defined(INTEGRATOR_RKN4)
     realv ax, ay, az, bx, by, bz, cx, cy, cz;
     field_D(FIELD_ARGS, *x, *y, *z, &ax, &ay, &az);
     ax *= h; ay *= h; az *= h;
-    REAL h2 = (REAL)0.5 * h, h8 = (REAL)0.125 * h;
+    realv h2 = RV(0.5) * h, h8 = RV(0.125) * h;
     field_D(FIELD_ARGS, *x + h2 * *vx + h8 * ax, *y + h2 * *vy + h8 * ay,
             *z + h2 * *vz + h8 * az, &bx, &by, &bz);
     bx *= h; by *= h; bz *= h;
@@ -24,14 +30,14 @@ inline void ode_step(FIELD_PARAMS, REAL h, realv *x, realv *y, realv *z, realv *
             &cx, &cy, &cz);
     cx *= h; cy *= h; cz *= h;
     const REAL s = (REAL)1 / (REAL)6;
-    *x += h * (*vx + s * (ax + RV(2) * bx));
-    *y += h * (*vy + s * (ay + RV(2) * by));
-    *z += h * (*vz + s * (az + RV(2) * bz));
-    *vx += s * (ax + RV(4) * bx + cx);
-    *vy += s * (ay + RV(4) * by + cy);
-    *vz += s * (az + RV(4) * bz + cz);
+    *ix = h * (*vx + s * (ax + RV(2) * bx));
+    *iy = h * (*vy + s * (ay + RV(2) * by));
+    *iz = h * (*vz + s * (az + RV(2) * bz));
+    *ivx = s * (ax + RV(4) * bx + cx);
+    *ivy = s * (ay + RV(4) * by + cy);
+    *ivz = s * (az + RV(4) * bz + cz);
 #elif defined(INTEGRATOR_RK4)
-    REAL h2 = (REAL)0.5 * h;
+    realv h2 = RV(0.5) * h;
     realv k1x, k1y, k1z, k2x, k2y, k2z, k3x, k3y, k3z, k4x, k4y, k4z;
     field_D(FIELD_ARGS, *x, *y, *z, &k1x, &k1y, &k1z);
     realv u2x = *vx + h2 * k1x, u2y = *vy + h2 * k1y, u2z = *vz + h2 * k1z;
@@ -40,26 +46,42 @@ inline void ode_step(FIELD_PARAMS, REAL h, realv *x, realv *y, realv *z, realv *
     field_D(FIELD_ARGS, *x + h2 * u2x, *y + h2 * u2y, *z + h2 * u2z, &k3x, &k3y, &k3z);
     realv u4x = *vx + h * k3x, u4y = *vy + h * k3y, u4z = *vz + h * k3z;
     field_D(FIELD_ARGS, *x + h * u3x, *y + h * u3y, *z + h * u3z, &k4x, &k4y, &k4z);
-    const REAL s = h / (REAL)6;
-    *x += s * (*vx + RV(2) * (u2x + u3x) + u4x);
-    *y += s * (*vy + RV(2) * (u2y + u3y) + u4y);
-    *z += s * (*vz + RV(2) * (u2z + u3z) + u4z);
-    *vx += s * (k1x + RV(2) * (k2x + k3x) + k4x);
-    *vy += s * (k1y + RV(2) * (k2y + k3y) + k4y);
-    *vz += s * (k1z + RV(2) * (k2z + k3z) + k4z);
+    const realv s = h / RV(6);
+    *ix = s * (*vx + RV(2) * (u2x + u3x) + u4x);
+    *iy = s * (*vy + RV(2) * (u2y + u3y) + u4y);
+    *iz = s * (*vz + RV(2) * (u2z + u3z) + u4z);
+    *ivx = s * (k1x + RV(2) * (k2x + k3x) + k4x);
+    *ivy = s * (k1y + RV(2) * (k2y + k3y) + k4y);
+    *ivz = s * (k1z + RV(2) * (k2z + k3z) + k4z);
 #elif defined(INTEGRATOR_EULER)
     realv ax, ay, az;
     field_D(FIELD_ARGS, *x, *y, *z, &ax, &ay, &az);
-    *x += h * *vx;
-    *y += h * *vy;
-    *z += h * *vz;
-    *vx += h * ax;
-    *vy += h * ay;
-    *vz += h * az;
+    *ix = h * *vx;
+    *iy = h * *vy;
+    *iz = h * *vz;
+    *ivx = h * ax;
+    *ivy = h * ay;
+    *ivz = h * az;
 #else
 #error "no INTEGRATOR_* defined"
 #endif
 }
+
+inline void ode_step(FIELD_PARAMS, realv h, realv *x, realv *y, realv *z, realv *vx, realv *vy,
+                     realv *vz) {
+    realv ix, iy, iz, ivx, ivy, ivz;
+    ode_incr(FIELD_ARGS, h, *x, *y, *z, *vx, *vy, *vz, &ix, &iy, &iz, &ivx, &ivy, &ivz);
+    *x += ix; *y += iy; *z += iz;
+    *vx += ivx; *vy += ivy; *vz += ivz;
+}
+
+/* Kahan summation s += d with compensation c, into (ns, nc): applied only where accepted. */
+#define KAHAN(s, c, d, ns, nc)                                                                  \
+    do {                                                                                      \
+        realv y_ = (d) - (c);                                                                 \
+        (ns) = (s) + y_;                                                                      \
+        (nc) = ((ns) - (s)) - y_;                                                             \
+    } while (0)
 
 inline maskv outside_box(realv x, realv y, realv z) {
     return x < RV(BOX_LO_X) || x > RV(BOX_HI_X) || y < RV(BOX_LO_Y) || y > RV(BOX_HI_Y) ||
@@ -76,6 +98,64 @@ inline realv box_exit_t(realv x, realv y, realv z, realv dx, realv dy, realv dz)
     tz = SEL(tz, RV(INFINITY), dz == RV(0));
     return fmax(fmin(fmin(tx, ty), tz), RV(0));
 }
+
+#ifdef FIELD_INTERFACE
+/* Steps onto a kink. field_interface(x) is about a signed distance in mm, and the field's
+ * derivatives jump where it equals INTERFACE_LO or INTERFACE_HI (the Luneburg surface, the
+ * two edges of a solid's interface band). A step whose ends lie on opposite sides integrates
+ * across the jump, which costs a fixed-step scheme its order (RK4 on the Luneburg lens: first
+ * order). Such a
+ * step is shortened to land on the kink, found by regula falsi (Illinois) on the step
+ * fraction with trial steps; the next step starts on the kink (|g| <= INTERFACE_TOL) and is
+ * not shortened again. Lanes that do not cross keep their full step. */
+#ifndef INTERFACE_ITERS
+#define INTERFACE_ITERS 8
+#endif
+#ifdef REAL_IS_DOUBLE
+#define INTERFACE_TOL 1e-9
+#else
+#define INTERFACE_TOL 2e-5f
+#endif
+inline void interface_step(FIELD_PARAMS, maskv active, realv *h, realv *s_at, realv x,
+                           realv y, realv z, realv vx, realv vy, realv vz, realv *ix, realv *iy,
+                           realv *iz, realv *ivx, realv *ivy, realv *ivz) {
+    const REAL lo = INTERFACE_LO, hi = INTERFACE_HI;
+    realv s0 = *s_at;
+    realv s1 = field_interface(FIELD_ARGS, x + *ix, y + *iy, z + *iz);
+    *s_at = s1;
+    maskv c_hi = fabs(s0 - hi) > RV(INTERFACE_TOL) && ((s0 < hi) != (s1 < hi));
+    maskv c_lo = fabs(s0 - lo) > RV(INTERFACE_TOL) && ((s0 < lo) != (s1 < lo));
+    maskv cross = active && (c_hi || c_lo);
+    if (!ANY(cross)) return;
+    /* a step across both levels (a band thinner than the step) stops at the nearer first */
+    maskv use_hi = c_hi && (!c_lo || fabs(s0 - hi) < fabs(s0 - lo));
+    realv level = SEL(RV(lo), RV(hi), use_hi);
+    realv g0 = s0 - level, g1 = s1 - level;
+    realv a = RV(0), b = RV(1), ga = g0, gb = g1, t = RV(1);
+    realv tx, ty, tz, tvx, tvy, tvz;
+    maskv open = cross;
+    for (int it = 0; it < INTERFACE_ITERS; ++it) {
+        t = SEL(t, clamp((a * gb - b * ga) / (gb - ga), a, b), open);
+        ode_incr(FIELD_ARGS, t * *h, x, y, z, vx, vy, vz, &tx, &ty, &tz, &tvx, &tvy, &tvz);
+        realv st_ = field_interface(FIELD_ARGS, x + tx, y + ty, z + tz);
+        realv gt = st_ - level;
+        *s_at = SEL(*s_at, st_, open);
+        *ix = SEL(*ix, tx, open); *iy = SEL(*iy, ty, open); *iz = SEL(*iz, tz, open);
+        *ivx = SEL(*ivx, tvx, open); *ivy = SEL(*ivy, tvy, open); *ivz = SEL(*ivz, tvz, open);
+        /* keep the root bracketed, halving the stale end's value (Illinois) */
+        maskv same_a = (gt < RV(0)) == (ga < RV(0));
+        maskv upd = open && !(fabs(gt) <= RV(0.25 * INTERFACE_TOL));
+        a = SEL(a, t, upd && same_a);
+        b = SEL(b, t, upd && !same_a);
+        realv nga = SEL(RV(0.5) * ga, gt, same_a), ngb = SEL(gt, RV(0.5) * gb, same_a);
+        ga = SEL(ga, nga, upd);
+        gb = SEL(gb, ngb, upd);
+        open = upd;
+        if (!ANY(open)) break;
+    }
+    *h = SEL(*h, t * *h, cross);
+}
+#endif
 
 /* Trace rays: straight to the box, integrate inside, straight out of the exit face.
  * Outputs the exit point, the exit v (direction times |v|), a status, the step count and
@@ -119,16 +199,39 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
     maskv active = hit;
     realv st = SEL(RV(ST_MISSED), RV(ST_EXITED), hit);
     realv n = RV(0);
+    /* compensation terms of the Kahan sums of x and v */
+    realv cx = RV(0), cy = RV(0), cz = RV(0), cvx = RV(0), cvy = RV(0), cvz = RV(0);
+#ifdef FIELD_INTERFACE
+    realv s_cur = field_interface(FIELD_ARGS, x, y, z); /* kink function at the ray's point */
+#endif
     for (int k = 0; k < max_steps && ANY(active); ++k) {
-        realv nx = x, ny = y, nz = z, nvx = vx, nvy = vy, nvz = vz;
-        ode_step(FIELD_ARGS, h, &nx, &ny, &nz, &nvx, &nvy, &nvz);
+        realv ix, iy, iz, ivx, ivy, ivz;
+        realv hk = RV(h);
+        ode_incr(FIELD_ARGS, hk, x, y, z, vx, vy, vz, &ix, &iy, &iz, &ivx, &ivy, &ivz);
+#ifdef FIELD_INTERFACE
+        realv s_new = s_cur;
+        interface_step(FIELD_ARGS, active, &hk, &s_new, x, y, z, vx, vy, vz, &ix, &iy, &iz,
+                       &ivx, &ivy, &ivz);
+#endif
+        realv nx, ny, nz, nvx, nvy, nvz, ncx, ncy, ncz, ncvx, ncvy, ncvz;
+        KAHAN(x, cx, ix, nx, ncx);
+        KAHAN(y, cy, iy, ny, ncy);
+        KAHAN(z, cz, iz, nz, ncz);
+        KAHAN(vx, cvx, ivx, nvx, ncvx);
+        KAHAN(vy, cvy, ivy, nvy, ncvy);
+        KAHAN(vz, cvz, ivz, nvz, ncvz);
         maskv bad = !isfinite(nx + ny + nz + nvx + nvy + nvz);
         maskv go = active && !outside_box(nx, ny, nz) && !bad;
         x = SEL(x, nx, go); y = SEL(y, ny, go); z = SEL(z, nz, go);
         vx = SEL(vx, nvx, go); vy = SEL(vy, nvy, go); vz = SEL(vz, nvz, go);
+        cx = SEL(cx, ncx, go); cy = SEL(cy, ncy, go); cz = SEL(cz, ncz, go);
+        cvx = SEL(cvx, ncvx, go); cvy = SEL(cvy, ncvy, go); cvz = SEL(cvz, ncvz, go);
         st = SEL(st, RV(ST_NONFINITE), active && bad);
         n += SEL(RV(0), RV(1), go);
         active = go;
+#ifdef FIELD_INTERFACE
+        s_cur = SEL(s_cur, s_new, go);
+#endif
         if (ckpt_every > 0 && (k + 1) % ckpt_every == 0) {
             __global REAL *c = ckpt + (size_t)((k + 1) / ckpt_every - 1) * 6 * col;
             VSTORE(x, i, c); VSTORE(y, i, c + col); VSTORE(z, i, c + 2 * col);
@@ -162,7 +265,7 @@ __kernel void propagate_rays(FIELD_PARAMS, const REAL h, const int n_steps, __gl
     realv x = VLOAD(i, px), y = VLOAD(i, py), z = VLOAD(i, pz);
     realv vx = VLOAD(i, qx), vy = VLOAD(i, qy), vz = VLOAD(i, qz);
     for (int k = 0; k < n_steps; ++k)
-        ode_step(FIELD_ARGS, h, &x, &y, &z, &vx, &vy, &vz);
+        ode_step(FIELD_ARGS, RV(h), &x, &y, &z, &vx, &vy, &vz);
     VSTORE(x, i, px); VSTORE(y, i, py); VSTORE(z, i, pz);
     VSTORE(vx, i, qx); VSTORE(vy, i, qy); VSTORE(vz, i, qz);
 }
