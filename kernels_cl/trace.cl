@@ -2,9 +2,16 @@
  * INTEGRATOR_RKN4 (Sharma's Runge-Kutta-Nystrom, 3 evaluations, 4th order),
  * INTEGRATOR_RK4 (classic 4-stage on (x, v)) or INTEGRATOR_EULER, chosen at build time. */
 
-inline void field_D(FIELD_PARAMS, realv x, realv y, realv z, realv *dx, realv *dy, realv *dz) {
+/* region: which side of a field's kinks a step integrates on (fields with FIELD_INTERFACE
+ * only; -2: by position) */
+inline void field_D(FIELD_PARAMS, realv region, realv x, realv y, realv z, realv *dx, realv *dy,
+                    realv *dz) {
     realv gx, gy, gz;
+#ifdef FIELD_INTERFACE
+    realv eta = field_eval_region(FIELD_ARGS, x, y, z, region, &gx, &gy, &gz);
+#else
     realv eta = field_eval(FIELD_ARGS, x, y, z, &gx, &gy, &gz);
+#endif
     *dx = eta * gx;
     *dy = eta * gy;
     *dz = eta * gz;
@@ -13,20 +20,20 @@ inline void field_D(FIELD_PARAMS, realv x, realv y, realv z, realv *dx, realv *d
 /* One step's increments (dx, dv) from (x, v); h per lane (interface steps shorten it). The
  * caller adds them (with compensated summation in trace_rays: at 1e-3 mm steps, float32
  * x + h v would lose the increment's low bits on every step). */
-inline void ode_incr(FIELD_PARAMS, realv h, realv x0, realv y0, realv z0, realv vx0, realv vy0,
+inline void ode_incr(FIELD_PARAMS, realv h, realv region, realv x0, realv y0, realv z0, realv vx0, realv vy0,
                      realv vz0, realv *ix, realv *iy, realv *iz, realv *ivx, realv *ivy,
                      realv *ivz) {
     realv x_ = x0, y_ = y0, z_ = z0, vx_ = vx0, vy_ = vy0, vz_ = vz0;
     realv *x = &x_, *y = &y_, *z = &z_, *vx = &vx_, *vy = &vy_, *vz = &vz_;
 #if defined(INTEGRATOR_RKN4)
     realv ax, ay, az, bx, by, bz, cx, cy, cz;
-    field_D(FIELD_ARGS, *x, *y, *z, &ax, &ay, &az);
+    field_D(FIELD_ARGS, region, *x, *y, *z, &ax, &ay, &az);
     ax *= h; ay *= h; az *= h;
     realv h2 = RV(0.5) * h, h8 = RV(0.125) * h;
-    field_D(FIELD_ARGS, *x + h2 * *vx + h8 * ax, *y + h2 * *vy + h8 * ay,
+    field_D(FIELD_ARGS, region, *x + h2 * *vx + h8 * ax, *y + h2 * *vy + h8 * ay,
             *z + h2 * *vz + h8 * az, &bx, &by, &bz);
     bx *= h; by *= h; bz *= h;
-    field_D(FIELD_ARGS, *x + h * *vx + h2 * bx, *y + h * *vy + h2 * by, *z + h * *vz + h2 * bz,
+    field_D(FIELD_ARGS, region, *x + h * *vx + h2 * bx, *y + h * *vy + h2 * by, *z + h * *vz + h2 * bz,
             &cx, &cy, &cz);
     cx *= h; cy *= h; cz *= h;
     const REAL s = (REAL)1 / (REAL)6;
@@ -39,13 +46,13 @@ inline void ode_incr(FIELD_PARAMS, realv h, realv x0, realv y0, realv z0, realv 
 #elif defined(INTEGRATOR_RK4)
     realv h2 = RV(0.5) * h;
     realv k1x, k1y, k1z, k2x, k2y, k2z, k3x, k3y, k3z, k4x, k4y, k4z;
-    field_D(FIELD_ARGS, *x, *y, *z, &k1x, &k1y, &k1z);
+    field_D(FIELD_ARGS, region, *x, *y, *z, &k1x, &k1y, &k1z);
     realv u2x = *vx + h2 * k1x, u2y = *vy + h2 * k1y, u2z = *vz + h2 * k1z;
-    field_D(FIELD_ARGS, *x + h2 * *vx, *y + h2 * *vy, *z + h2 * *vz, &k2x, &k2y, &k2z);
+    field_D(FIELD_ARGS, region, *x + h2 * *vx, *y + h2 * *vy, *z + h2 * *vz, &k2x, &k2y, &k2z);
     realv u3x = *vx + h2 * k2x, u3y = *vy + h2 * k2y, u3z = *vz + h2 * k2z;
-    field_D(FIELD_ARGS, *x + h2 * u2x, *y + h2 * u2y, *z + h2 * u2z, &k3x, &k3y, &k3z);
+    field_D(FIELD_ARGS, region, *x + h2 * u2x, *y + h2 * u2y, *z + h2 * u2z, &k3x, &k3y, &k3z);
     realv u4x = *vx + h * k3x, u4y = *vy + h * k3y, u4z = *vz + h * k3z;
-    field_D(FIELD_ARGS, *x + h * u3x, *y + h * u3y, *z + h * u3z, &k4x, &k4y, &k4z);
+    field_D(FIELD_ARGS, region, *x + h * u3x, *y + h * u3y, *z + h * u3z, &k4x, &k4y, &k4z);
     const realv s = h / RV(6);
     *ix = s * (*vx + RV(2) * (u2x + u3x) + u4x);
     *iy = s * (*vy + RV(2) * (u2y + u3y) + u4y);
@@ -55,7 +62,7 @@ inline void ode_incr(FIELD_PARAMS, realv h, realv x0, realv y0, realv z0, realv 
     *ivz = s * (k1z + RV(2) * (k2z + k3z) + k4z);
 #elif defined(INTEGRATOR_EULER)
     realv ax, ay, az;
-    field_D(FIELD_ARGS, *x, *y, *z, &ax, &ay, &az);
+    field_D(FIELD_ARGS, region, *x, *y, *z, &ax, &ay, &az);
     *ix = h * *vx;
     *iy = h * *vy;
     *iz = h * *vz;
@@ -70,7 +77,7 @@ inline void ode_incr(FIELD_PARAMS, realv h, realv x0, realv y0, realv z0, realv 
 inline void ode_step(FIELD_PARAMS, realv h, realv *x, realv *y, realv *z, realv *vx, realv *vy,
                      realv *vz) {
     realv ix, iy, iz, ivx, ivy, ivz;
-    ode_incr(FIELD_ARGS, h, *x, *y, *z, *vx, *vy, *vz, &ix, &iy, &iz, &ivx, &ivy, &ivz);
+    ode_incr(FIELD_ARGS, h, RV(-2), *x, *y, *z, *vx, *vy, *vz, &ix, &iy, &iz, &ivx, &ivy, &ivz);
     *x += ix; *y += iy; *z += iz;
     *vx += ivx; *vy += ivy; *vz += ivz;
 }
@@ -102,58 +109,90 @@ inline realv box_exit_t(realv x, realv y, realv z, realv dx, realv dy, realv dz)
 #ifdef FIELD_INTERFACE
 /* Steps onto a kink. field_interface(x) is about a signed distance in mm, and the field's
  * derivatives jump where it equals INTERFACE_LO or INTERFACE_HI (the Luneburg surface, the
- * two edges of a solid's interface band). A step whose ends lie on opposite sides integrates
- * across the jump, which costs a fixed-step scheme its order (RK4 on the Luneburg lens: first
- * order). Such a
- * step is shortened to land on the kink, found by regula falsi (Illinois) on the step
- * fraction with trial steps; the next step starts on the kink (|g| <= INTERFACE_TOL) and is
- * not shortened again. Lanes that do not cross keep their full step. */
+ * two edges of a solid's interface band). A step that integrates across such a jump costs a
+ * fixed-step scheme its order (RK4 on the Luneburg lens: first order). So every step uses one
+ * region's formula at all its stages (field_eval_region, continued a little past the edges),
+ * and a step whose end would lie in another region is shortened to land on the edge, found
+ * by regula falsi (Anderson-Bjorck) on the step fraction with trial steps; the next step then uses
+ * the far region's formula. Lanes that do not cross keep their full step. An event-located
+ * step like this is what keeps RK4 fourth order through the Luneburg surface. */
 #ifndef INTERFACE_ITERS
-#define INTERFACE_ITERS 8
+#define INTERFACE_ITERS 10
 #endif
 #ifdef REAL_IS_DOUBLE
-#define INTERFACE_TOL 1e-9
+#define INTERFACE_TOL 1e-10
 #else
 #define INTERFACE_TOL 2e-5f
 #endif
-inline void interface_step(FIELD_PARAMS, maskv active, realv *h, realv *s_at, realv x,
-                           realv y, realv z, realv vx, realv vy, realv vz, realv *ix, realv *iy,
-                           realv *iz, realv *ivx, realv *ivy, realv *ivz) {
+
+/* -1 below INTERFACE_LO, 0 between, +1 above INTERFACE_HI */
+inline realv region_of(FIELD_PARAMS, realv s) {
+    return SEL(SEL(RV(0), RV(1), s > RV(INTERFACE_HI)), RV(-1), s < RV(INTERFACE_LO));
+}
+
+/* On entry: the full step's increments from (x, v) in *region, and the interface value *s_at
+ * at x. On exit: the increments of the step to take, its length *h, the region the next step
+ * uses and the interface value at the step's end. */
+inline void interface_step(FIELD_PARAMS, maskv active, realv *h, realv *region, realv *s_at,
+                           realv x, realv y, realv z, realv vx, realv vy, realv vz, realv *ix,
+                           realv *iy, realv *iz, realv *ivx, realv *ivy, realv *ivz) {
     const REAL lo = INTERFACE_LO, hi = INTERFACE_HI;
     realv s0 = *s_at;
     realv s1 = field_interface(FIELD_ARGS, x + *ix, y + *iy, z + *iz);
     *s_at = s1;
-    maskv c_hi = fabs(s0 - hi) > RV(INTERFACE_TOL) && ((s0 < hi) != (s1 < hi));
-    maskv c_lo = fabs(s0 - lo) > RV(INTERFACE_TOL) && ((s0 < lo) != (s1 < lo));
+    realv next = region_of(FIELD_ARGS, s1);
+    /* a crossing: the step's end lies more than TOL beyond a level on the far side from the
+     * region the step integrates in (an end closer than that is on the kink: the step
+     * straddles it by < TOL). Judged by the region, not by s0: a step that starts on a kink
+     * it has just landed on must not integrate across it again with its old formula. */
+    realv r0 = *region;
+    maskv c_hi = (r0 < RV(0.5) && s1 > RV(hi + INTERFACE_TOL)) ||
+                 (r0 > RV(0.5) && s1 < RV(hi - INTERFACE_TOL));
+    maskv c_lo = (r0 > RV(-0.5) && s1 < RV(lo - INTERFACE_TOL)) ||
+                 (r0 < RV(-0.5) && s1 > RV(lo + INTERFACE_TOL));
     maskv cross = active && (c_hi || c_lo);
-    if (!ANY(cross)) return;
+    if (!ANY(cross)) {
+        *region = next;
+        return;
+    }
     /* a step across both levels (a band thinner than the step) stops at the nearer first */
     maskv use_hi = c_hi && (!c_lo || fabs(s0 - hi) < fabs(s0 - lo));
     realv level = SEL(RV(lo), RV(hi), use_hi);
-    realv g0 = s0 - level, g1 = s1 - level;
+    maskv up = s1 > s0;
+    realv above = SEL(RV(0), RV(1), level >= RV(hi));
+    realv below = SEL(RV(0), RV(-1), level <= RV(lo));
+    realv far = SEL(below, above, up);
+    realv g1 = s1 - level;
+    /* the start is on the region's side of the level, if only by rounding */
+    realv g0 = SEL(s0 - level, RV(-0.01 * INTERFACE_TOL) * sign(g1), (s0 - level) * g1 >= RV(0));
     realv a = RV(0), b = RV(1), ga = g0, gb = g1, t = RV(1);
     realv tx, ty, tz, tvx, tvy, tvz;
     maskv open = cross;
     for (int it = 0; it < INTERFACE_ITERS; ++it) {
-        t = SEL(t, clamp((a * gb - b * ga) / (gb - ga), a, b), open);
-        ode_incr(FIELD_ARGS, t * *h, x, y, z, vx, vy, vz, &tx, &ty, &tz, &tvx, &tvy, &tvz);
+        t = SEL(t, clamp((a * gb - b * ga) / (gb - ga), fmin(a, b), fmax(a, b)), open);
+        ode_incr(FIELD_ARGS, t * *h, *region, x, y, z, vx, vy, vz, &tx, &ty, &tz, &tvx, &tvy,
+                 &tvz);
         realv st_ = field_interface(FIELD_ARGS, x + tx, y + ty, z + tz);
         realv gt = st_ - level;
         *s_at = SEL(*s_at, st_, open);
         *ix = SEL(*ix, tx, open); *iy = SEL(*iy, ty, open); *iz = SEL(*iz, tz, open);
         *ivx = SEL(*ivx, tvx, open); *ivy = SEL(*ivy, tvy, open); *ivz = SEL(*ivz, tvz, open);
-        /* keep the root bracketed, halving the stale end's value (Illinois) */
-        maskv same_a = (gt < RV(0)) == (ga < RV(0));
+        /* Anderson-Bjorck: (b, gb) is the newest point, a the other end of the bracket; a
+         * retained end's value is scaled down so that it does not stick */
+        maskv flip = (gt < RV(0)) != (gb < RV(0));
+        realv m = RV(1) - gt / gb;
+        m = SEL(RV(0.5), m, m > RV(0));
         maskv upd = open && !(fabs(gt) <= RV(0.25 * INTERFACE_TOL));
-        a = SEL(a, t, upd && same_a);
-        b = SEL(b, t, upd && !same_a);
-        realv nga = SEL(RV(0.5) * ga, gt, same_a), ngb = SEL(gt, RV(0.5) * gb, same_a);
+        realv na = SEL(a, b, flip), nga = SEL(m * ga, gb, flip);
+        a = SEL(a, na, upd);
         ga = SEL(ga, nga, upd);
-        gb = SEL(gb, ngb, upd);
+        b = SEL(b, t, upd);
+        gb = SEL(gb, gt, upd);
         open = upd;
         if (!ANY(open)) break;
     }
     *h = SEL(*h, t * *h, cross);
+    *region = SEL(next, far, cross);
 }
 #endif
 
@@ -203,15 +242,18 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
     realv cx = RV(0), cy = RV(0), cz = RV(0), cvx = RV(0), cvy = RV(0), cvz = RV(0);
 #ifdef FIELD_INTERFACE
     realv s_cur = field_interface(FIELD_ARGS, x, y, z); /* kink function at the ray's point */
+    realv reg = region_of(FIELD_ARGS, s_cur);
+#else
+    const realv reg = RV(-2);
 #endif
     for (int k = 0; k < max_steps && ANY(active); ++k) {
         realv ix, iy, iz, ivx, ivy, ivz;
         realv hk = RV(h);
-        ode_incr(FIELD_ARGS, hk, x, y, z, vx, vy, vz, &ix, &iy, &iz, &ivx, &ivy, &ivz);
+        ode_incr(FIELD_ARGS, hk, reg, x, y, z, vx, vy, vz, &ix, &iy, &iz, &ivx, &ivy, &ivz);
 #ifdef FIELD_INTERFACE
-        realv s_new = s_cur;
-        interface_step(FIELD_ARGS, active, &hk, &s_new, x, y, z, vx, vy, vz, &ix, &iy, &iz,
-                       &ivx, &ivy, &ivz);
+        realv s_new = s_cur, reg_new = reg;
+        interface_step(FIELD_ARGS, active, &hk, &reg_new, &s_new, x, y, z, vx, vy, vz, &ix, &iy,
+                       &iz, &ivx, &ivy, &ivz);
 #endif
         realv nx, ny, nz, nvx, nvy, nvz, ncx, ncy, ncz, ncvx, ncvy, ncvz;
         KAHAN(x, cx, ix, nx, ncx);
@@ -231,6 +273,7 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
         active = go;
 #ifdef FIELD_INTERFACE
         s_cur = SEL(s_cur, s_new, go);
+        reg = SEL(reg, reg_new, go);
 #endif
         if (ckpt_every > 0 && (k + 1) % ckpt_every == 0) {
             __global REAL *c = ckpt + (size_t)((k + 1) / ckpt_every - 1) * 6 * col;
