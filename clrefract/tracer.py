@@ -12,7 +12,9 @@ from .fields.base import Box, Field
 from .limits import check_count, check_device_buffer, max_steps_for
 from .runtime import Runtime, default_runtime
 
-INTEGRATORS = ("rkn4", "rk4", "euler")
+INTEGRATORS = ("rkn4", "rk4", "euler", "dopri5")
+# field evaluations per step (per attempted step for the adaptive pair)
+EVALS_PER_STEP = {"rkn4": 3, "rk4": 4, "euler": 1, "dopri5": 7}
 
 
 @dataclass
@@ -53,6 +55,10 @@ class Tracer:
     step: the increment of sigma (arc length / eta) per integrator step, in mm.
     lanes: rays per work-item; None picks the device's default (16 on CPUs, 1 on GPUs).
     adjoint: also build the backward-pass kernel (fields with parameters only).
+    tol: with integrator "dopri5", the local error per step (mm of position, and of v) that
+        its adaptive step keeps to; `step` is then the largest step, and TraceResult.steps
+        counts attempted steps (rejected ones cost evaluations too). Forward only: the
+        backward pass replays fixed steps, so adjoint=True refuses it.
     interface_steps: shorten steps that would cross a field's known kink (analytic fields:
         the Luneburg surface, a solid's band edges) so that they land on it and the scheme
         keeps its order there; False integrates across it (first order at the kink).
@@ -70,6 +76,7 @@ class Tracer:
         runtime: Runtime | None = None,
         adjoint: bool = False,
         interface_steps: bool = True,
+        tol: float | None = None,
     ):
         box = box or Box()
         # a ray bent inside the box rarely travels more than a few diagonals
@@ -94,6 +101,20 @@ class Tracer:
         kbox = Box(tuple(box.lo - self.offset), tuple(box.hi - self.offset), box.margin)
         defines = {**field.defines(), **kbox.defines(), "LANES": self.lanes}
         defines[f"INTEGRATOR_{integrator.upper()}"] = 1
+        self.tol = None if tol is None else float(tol)
+        if self.tol is not None:
+            if integrator != "dopri5":
+                raise ClrefractError(
+                    f"tol needs the adaptive integrator dopri5, not {integrator!r}"
+                )
+            if adjoint:
+                raise ClrefractError(
+                    "the adaptive integrator (dopri5 with tol) is forward only: the backward "
+                    "pass replays fixed steps; fit with rkn4 or rk4"
+                )
+            if not (np.isfinite(self.tol) and self.tol > 0):
+                raise ClrefractError(f"tol must be a positive number, got {tol!r}")
+            defines["ADAPTIVE_TOL"] = repr(self.tol)
         self.interface_steps = bool(interface_steps)
         if not self.interface_steps:
             defines["NO_INTERFACE_STEPS"] = 1

@@ -1,6 +1,8 @@
 /* Curved-ray tracing in the optical-path form: x' = v, v' = D(x) = eta grad eta, |v| = eta.
  * INTEGRATOR_RKN4 (Sharma's Runge-Kutta-Nystrom, 3 evaluations, 4th order),
- * INTEGRATOR_RK4 (classic 4-stage on (x, v)) or INTEGRATOR_EULER, chosen at build time. */
+ * INTEGRATOR_RK4 (classic 4-stage on (x, v)), INTEGRATOR_EULER, or INTEGRATOR_DOPRI5
+ * (Dormand-Prince 5(4), 7 evaluations; with ADAPTIVE_TOL its step adapts, forward only),
+ * chosen at build time. */
 
 /* region: which side of a field's kinks a step integrates on (fields with FIELD_INTERFACE
  * only; -2: by position) */
@@ -16,6 +18,57 @@ inline void field_D(FIELD_PARAMS, realv region, realv x, realv y, realv z, realv
     *dy = eta * gy;
     *dz = eta * gz;
 }
+
+#if defined(INTEGRATOR_DOPRI5)
+/* Dormand-Prince 5(4) on y = (x, v), y' = (v, D(x)): 7 stages, the 5th-order solution and
+ * the difference to the embedded 4th-order one (*err: its largest component, mm or |v|
+ * units). Each stage costs one field evaluation. */
+__constant REAL DP_A[7][6] = {
+    {0, 0, 0, 0, 0, 0},
+    {(REAL)(1.0 / 5), 0, 0, 0, 0, 0},
+    {(REAL)(3.0 / 40), (REAL)(9.0 / 40), 0, 0, 0, 0},
+    {(REAL)(44.0 / 45), (REAL)(-56.0 / 15), (REAL)(32.0 / 9), 0, 0, 0},
+    {(REAL)(19372.0 / 6561), (REAL)(-25360.0 / 2187), (REAL)(64448.0 / 6561),
+     (REAL)(-212.0 / 729), 0, 0},
+    {(REAL)(9017.0 / 3168), (REAL)(-355.0 / 33), (REAL)(46732.0 / 5247), (REAL)(49.0 / 176),
+     (REAL)(-5103.0 / 18656), 0},
+    {(REAL)(35.0 / 384), 0, (REAL)(500.0 / 1113), (REAL)(125.0 / 192), (REAL)(-2187.0 / 6784),
+     (REAL)(11.0 / 84)}};
+/* b5 - b4 */
+__constant REAL DP_E[7] = {(REAL)(71.0 / 57600),     0,
+                           (REAL)(-71.0 / 16695),    (REAL)(71.0 / 1920),
+                           (REAL)(-17253.0 / 339200), (REAL)(22.0 / 525),
+                           (REAL)(-1.0 / 40)};
+
+inline void ode_dopri(FIELD_PARAMS, realv h, realv region, realv x, realv y, realv z, realv vx,
+                      realv vy, realv vz, realv *ix, realv *iy, realv *iz, realv *ivx,
+                      realv *ivy, realv *ivz, realv *err) {
+    realv Vx[7], Vy[7], Vz[7], Kx[7], Ky[7], Kz[7];
+    for (int i = 0; i < 7; ++i) {
+        realv sx = RV(0), sy = RV(0), sz = RV(0), tx = RV(0), ty = RV(0), tz = RV(0);
+        for (int j = 0; j < i; ++j) {
+            REAL a = DP_A[i][j];
+            sx += a * Vx[j]; sy += a * Vy[j]; sz += a * Vz[j];
+            tx += a * Kx[j]; ty += a * Ky[j]; tz += a * Kz[j];
+        }
+        Vx[i] = vx + h * tx; Vy[i] = vy + h * ty; Vz[i] = vz + h * tz;
+        field_D(FIELD_ARGS, region, x + h * sx, y + h * sy, z + h * sz, &Kx[i], &Ky[i], &Kz[i]);
+    }
+    realv sx = RV(0), sy = RV(0), sz = RV(0), tx = RV(0), ty = RV(0), tz = RV(0);
+    realv ex = RV(0), ey = RV(0), ez = RV(0), fx = RV(0), fy = RV(0), fz = RV(0);
+    for (int j = 0; j < 7; ++j) {
+        REAL b = DP_A[6][j < 6 ? j : 0] * (j < 6 ? (REAL)1 : (REAL)0), e = DP_E[j];
+        sx += b * Vx[j]; sy += b * Vy[j]; sz += b * Vz[j];
+        tx += b * Kx[j]; ty += b * Ky[j]; tz += b * Kz[j];
+        ex += e * Vx[j]; ey += e * Vy[j]; ez += e * Vz[j];
+        fx += e * Kx[j]; fy += e * Ky[j]; fz += e * Kz[j];
+    }
+    *ix = h * sx; *iy = h * sy; *iz = h * sz;
+    *ivx = h * tx; *ivy = h * ty; *ivz = h * tz;
+    *err = h * fmax(fmax(fmax(fabs(ex), fabs(ey)), fmax(fabs(ez), fabs(fx))),
+                    fmax(fabs(fy), fabs(fz)));
+}
+#endif
 
 /* One step's increments (dx, dv) from (x, v); h per lane (interface steps shorten it). The
  * caller adds them (with compensated summation in trace_rays: at 1e-3 mm steps, float32
@@ -60,6 +113,9 @@ inline void ode_incr(FIELD_PARAMS, realv h, realv region, realv x0, realv y0, re
     *ivx = s * (k1x + RV(2) * (k2x + k3x) + k4x);
     *ivy = s * (k1y + RV(2) * (k2y + k3y) + k4y);
     *ivz = s * (k1z + RV(2) * (k2z + k3z) + k4z);
+#elif defined(INTEGRATOR_DOPRI5)
+    realv e_;
+    ode_dopri(FIELD_ARGS, h, region, *x, *y, *z, *vx, *vy, *vz, ix, iy, iz, ivx, ivy, ivz, &e_);
 #elif defined(INTEGRATOR_EULER)
     realv ax, ay, az;
     field_D(FIELD_ARGS, region, *x, *y, *z, &ax, &ay, &az);
@@ -246,13 +302,32 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
 #else
     const realv reg = RV(-2);
 #endif
+#ifdef ADAPTIVE_TOL
+    realv hcur = RV(h); /* per-lane step of the adaptive pair, at most h */
+#endif
     for (int k = 0; k < max_steps && ANY(active); ++k) {
         realv ix, iy, iz, ivx, ivy, ivz;
         realv hk = RV(h);
+#ifdef ADAPTIVE_TOL
+        /* error per step below ADAPTIVE_TOL (mm, and |v| units); a rejected step is retried
+         * shorter from the same state. A step of 1e-4 h is accepted whatever its error, so
+         * that a ray cannot stall; max_steps counts attempts, so none can hang. */
+        hk = hcur;
+        realv err;
+        ode_dopri(FIELD_ARGS, hk, reg, x, y, z, vx, vy, vz, &ix, &iy, &iz, &ivx, &ivy, &ivz,
+                  &err);
+        maskv acc = !(err > RV(ADAPTIVE_TOL)) || hk <= RV((REAL)1e-4 * h);
+        realv fac = RV(0.9) * pow(RV(ADAPTIVE_TOL) / fmax(err, RV(1e-30)), RV(0.2));
+        fac = clamp(fac, RV(0.2), RV(5));
+        hcur = SEL(hcur, fmin(hk * fac, RV(h)), active && isfinite(fac));
+        maskv moving = active && acc;
+#else
         ode_incr(FIELD_ARGS, hk, reg, x, y, z, vx, vy, vz, &ix, &iy, &iz, &ivx, &ivy, &ivz);
+        maskv moving = active;
+#endif
 #ifdef FIELD_INTERFACE
         realv s_new = s_cur, reg_new = reg;
-        interface_step(FIELD_ARGS, active, &hk, &reg_new, &s_new, x, y, z, vx, vy, vz, &ix, &iy,
+        interface_step(FIELD_ARGS, moving, &hk, &reg_new, &s_new, x, y, z, vx, vy, vz, &ix, &iy,
                        &iz, &ivx, &ivy, &ivz);
 #endif
         realv nx, ny, nz, nvx, nvy, nvz, ncx, ncy, ncz, ncvx, ncvy, ncvz;
@@ -263,14 +338,19 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
         KAHAN(vy, cvy, ivy, nvy, ncvy);
         KAHAN(vz, cvz, ivz, nvz, ncvz);
         maskv bad = !isfinite(nx + ny + nz + nvx + nvy + nvz);
-        maskv go = active && !outside_box(nx, ny, nz) && !bad;
+        maskv go = moving && !outside_box(nx, ny, nz) && !bad;
         x = SEL(x, nx, go); y = SEL(y, ny, go); z = SEL(z, nz, go);
         vx = SEL(vx, nvx, go); vy = SEL(vy, nvy, go); vz = SEL(vz, nvz, go);
         cx = SEL(cx, ncx, go); cy = SEL(cy, ncy, go); cz = SEL(cz, ncz, go);
         cvx = SEL(cvx, ncvx, go); cvy = SEL(cvy, ncvy, go); cvz = SEL(cvz, ncvz, go);
-        st = SEL(st, RV(ST_NONFINITE), active && bad);
+        st = SEL(st, RV(ST_NONFINITE), moving && bad);
+#ifdef ADAPTIVE_TOL
+        n += SEL(RV(0), RV(1), active); /* attempts: each costs the pair's 7 evaluations */
+        active = go || (active && !moving);
+#else
         n += SEL(RV(0), RV(1), go);
         active = go;
+#endif
 #ifdef FIELD_INTERFACE
         s_cur = SEL(s_cur, s_new, go);
         reg = SEL(reg, reg_new, go);
