@@ -89,6 +89,9 @@ class Tracer:
         self.integrator, self.precision = integrator, precision
         self.lanes = lanes or self.runtime.default_lanes(precision)
         self.runtime.check_lanes(self.lanes, precision)
+        if tol is not None and max_steps is None:
+            # the adaptive pair's steps shrink where the field needs it: room for attempts
+            default_cap = max_steps_for(step / 64, float(np.linalg.norm(box.size)))
         self.max_steps = default_cap if max_steps is None else check_count("max_steps", max_steps)
         self.dtype = self.runtime.real_dtype(precision)
         # Rays are traced relative to the box centre where the field can move with it

@@ -319,7 +319,7 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
         maskv acc = !(err > RV(ADAPTIVE_TOL)) || hk <= RV((REAL)1e-4 * h);
         realv fac = RV(0.9) * pow(RV(ADAPTIVE_TOL) / fmax(err, RV(1e-30)), RV(0.2));
         fac = clamp(fac, RV(0.2), RV(5));
-        hcur = SEL(hcur, fmin(hk * fac, RV(h)), active && isfinite(fac));
+        hcur = SEL(hcur, clamp(hk * fac, RV((REAL)1e-4 * h), RV(h)), active && isfinite(fac));
         maskv moving = active && acc;
 #else
         ode_incr(FIELD_ARGS, hk, reg, x, y, z, vx, vy, vz, &ix, &iy, &iz, &ivx, &ivy, &ivz);
