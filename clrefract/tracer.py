@@ -59,6 +59,9 @@ class Tracer:
         its adaptive step keeps to; `step` is then the largest step, and TraceResult.steps
         counts attempted steps (rejected ones cost evaluations too). Forward only: the
         backward pass replays fixed steps, so adjoint=True refuses it.
+    skip_empty: rays fly straight through the cells of an occupancy_res^3 grid where eta is
+        constant (clrefract/occupancy.py), instead of stepping. Forward only (the backward
+        pass replays fixed steps): adjoint=True refuses it.
     interface_steps: shorten steps that would cross a field's known kink (analytic fields:
         the Luneburg surface, a solid's band edges) so that they land on it and the scheme
         keeps its order there; False integrates across it (first order at the kink).
@@ -77,6 +80,8 @@ class Tracer:
         adjoint: bool = False,
         interface_steps: bool = True,
         tol: float | None = None,
+        skip_empty: bool = False,
+        occupancy_res: int = 32,
     ):
         box = box or Box()
         # a ray bent inside the box rarely travels more than a few diagonals
@@ -121,6 +126,18 @@ class Tracer:
         self.interface_steps = bool(interface_steps)
         if not self.interface_steps:
             defines["NO_INTERFACE_STEPS"] = 1
+        self.skip_empty = bool(skip_empty)
+        if self.skip_empty:
+            if adjoint:
+                raise ClrefractError(
+                    "empty-space skipping is forward only: the backward pass replays fixed "
+                    "steps; fit without skip_empty"
+                )
+            from .occupancy import empty_distance
+
+            res = check_count("occupancy_res", occupancy_res, 1, 1024)
+            self.occupancy = empty_distance(field, box, res)
+            defines.update(SKIP_EMPTY=1, OCC_N=res)
         sources = ["common.h", field.source, "trace.cl"]
         if adjoint:
             adj = getattr(field, "adjoint_source", None)
@@ -136,6 +153,13 @@ class Tracer:
         self._k_eval = prg.eval_field
         cl = self.runtime.cl
         self._no_ckpt = cl.Buffer(self.runtime.context, cl.mem_flags.READ_WRITE, 64)
+        self._skip_args = []
+        if self.skip_empty:
+            mf = cl.mem_flags
+            occ = np.ascontiguousarray(self.occupancy.reshape(-1), np.int32)
+            self._skip_args = [
+                cl.Buffer(self.runtime.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=occ)
+            ]
         self.upload_field()
 
     def checkpoint_buffer(self, n_padded: int, every: int):
@@ -240,7 +264,7 @@ class Tracer:
         outs = [Out(a) for a in p + v + [status, steps] + last]
         scal = [self.dtype(self.step), np.int32(self.max_steps)]
         no_ckpt = [np.int32(0), self._no_ckpt]
-        self._run(self._k_trace, m // self.lanes, scal + o + d + outs + no_ckpt)
+        self._run(self._k_trace, m // self.lanes, scal + o + d + outs + no_ckpt + self._skip_args)
         vel = np.stack(v, axis=1)[:n].astype(np.float64)
         speed = np.linalg.norm(vel, axis=1)
         return TraceResult(

@@ -252,6 +252,46 @@ inline void interface_step(FIELD_PARAMS, maskv active, realv *h, realv *region, 
 }
 #endif
 
+#ifdef SKIP_EMPTY
+/* Empty-space skipping (forward only). occ holds, per cell of an OCC_N^3 grid over the box,
+ * 0 where eta varies and else the Chebyshev distance in cells to the nearest such cell
+ * (clrefract/occupancy.py). In a cell at distance k >= 1, eta is constant up to k - 1 cells
+ * beyond it, so the ray flies straight (x'' = 0) out of its cell and k - 1 cells on: the
+ * arc length returned (0 in occupied cells). */
+#define OCC_HX (((REAL)BOX_HI_X - (REAL)BOX_LO_X) / (REAL)OCC_N)
+#define OCC_HY (((REAL)BOX_HI_Y - (REAL)BOX_LO_Y) / (REAL)OCC_N)
+#define OCC_HZ (((REAL)BOX_HI_Z - (REAL)BOX_LO_Z) / (REAL)OCC_N)
+inline realv empty_jump(__global const int *occ, realv x, realv y, realv z, realv ux, realv uy,
+                        realv uz) {
+    realv fx = clamp(floor((x - RV(BOX_LO_X)) / OCC_HX), RV(0), RV(OCC_N - 1));
+    realv fy = clamp(floor((y - RV(BOX_LO_Y)) / OCC_HY), RV(0), RV(OCC_N - 1));
+    realv fz = clamp(floor((z - RV(BOX_LO_Z)) / OCC_HZ), RV(0), RV(OCC_N - 1));
+#if LANES == 1
+    realv k = (REAL)occ[((int)fx * OCC_N + (int)fy) * OCC_N + (int)fz];
+#else
+    /* a gather: no vector indexing in OpenCL C */
+    REAL ax[LANES], ay[LANES], az[LANES], ak[LANES];
+    VSTORE(fx, 0, ax); VSTORE(fy, 0, ay); VSTORE(fz, 0, az);
+    for (int l = 0; l < LANES; ++l)
+        ak[l] = (REAL)occ[((int)ax[l] * OCC_N + (int)ay[l]) * OCC_N + (int)az[l]];
+    realv k = VLOAD(0, ak);
+#endif
+    realv tx = (RV(BOX_LO_X) + (fx + SEL(RV(0), RV(1), ux > RV(0))) * OCC_HX - x) / ux;
+    realv ty = (RV(BOX_LO_Y) + (fy + SEL(RV(0), RV(1), uy > RV(0))) * OCC_HY - y) / uy;
+    realv tz = (RV(BOX_LO_Z) + (fz + SEL(RV(0), RV(1), uz > RV(0))) * OCC_HZ - z) / uz;
+    tx = SEL(tx, RV(INFINITY), ux == RV(0));
+    ty = SEL(ty, RV(INFINITY), uy == RV(0));
+    tz = SEL(tz, RV(INFINITY), uz == RV(0));
+    const REAL hmin = fmin(fmin(OCC_HX, OCC_HY), OCC_HZ);
+    /* past the cell's face by 1e-3 cell, so that the next lookup is the next cell */
+    realv t = fmax(fmin(fmin(tx, ty), tz), RV(0)) + (k - RV(1)) * hmin + RV((REAL)1e-3 * hmin);
+    return SEL(RV(0), t, k >= RV(1));
+}
+#define SKIP_ARG , __global const int *occ
+#else
+#define SKIP_ARG
+#endif
+
 /* Trace rays: straight to the box, integrate inside, straight out of the exit face.
  * Outputs the exit point, the exit v (direction times |v|), a status, the step count and
  * the last state inside the box (where the backward pass starts). With ckpt_every = C > 0,
@@ -266,7 +306,8 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
                          __global REAL *py, __global REAL *pz, __global REAL *qx,
                          __global REAL *qy, __global REAL *qz, __global int *status,
                          __global int *steps, __global REAL *lx, __global REAL *ly,
-                         __global REAL *lz, const int ckpt_every, __global REAL *ckpt) {
+                         __global REAL *lz, const int ckpt_every,
+                         __global REAL *ckpt SKIP_ARG) {
     const size_t i = get_global_id(0);
     const size_t col = get_global_size(0) * LANES;
     realv x = VLOAD(i, ox), y = VLOAD(i, oy), z = VLOAD(i, oz);
@@ -308,6 +349,32 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
     for (int k = 0; k < max_steps && ANY(active); ++k) {
         realv ix, iy, iz, ivx, ivy, ivz;
         realv hk = RV(h);
+        maskv jumped = active && !active; /* all false, of the mask type */
+#ifdef SKIP_EMPTY
+        {
+            realv sp = sqrt(vx * vx + vy * vy + vz * vz);
+            realv L = empty_jump(occ, x, y, z, vx / sp, vy / sp, vz / sp);
+            /* whole steps only (dx/dsigma = v): the ray stays on the step lattice it would
+             * have followed, so that steps resume where they would have been and images
+             * match those without skipping to rounding, not to the integrator's error */
+            realv sg = floor(L / (sp * h)) * h;
+            jumped = active && sg > RV(0);
+            if (ANY(jumped)) {
+                realv jx = x + sg * vx, jy = y + sg * vy, jz = z + sg * vz;
+                /* a flight out of the box ends the ray: it leaves straight from here */
+                maskv leaves = jumped && outside_box(jx, jy, jz);
+                maskv mv = jumped && !leaves;
+                x = SEL(x, jx, mv); y = SEL(y, jy, mv); z = SEL(z, jz, mv);
+                cx = SEL(cx, RV(0), mv); cy = SEL(cy, RV(0), mv); cz = SEL(cz, RV(0), mv);
+                active = active && !leaves;
+                jumped = mv;
+#ifdef FIELD_INTERFACE
+                s_cur = SEL(s_cur, field_interface(FIELD_ARGS, x, y, z), mv);
+                reg = SEL(reg, region_of(FIELD_ARGS, s_cur), mv);
+#endif
+            }
+        }
+#endif
 #ifdef ADAPTIVE_TOL
         /* error per step below ADAPTIVE_TOL (mm, and |v| units); a rejected step is retried
          * shorter from the same state. A step of 1e-4 h is accepted whatever its error, so
@@ -320,10 +387,10 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
         realv fac = RV(0.9) * pow(RV(ADAPTIVE_TOL) / fmax(err, RV(1e-30)), RV(0.2));
         fac = clamp(fac, RV(0.2), RV(5));
         hcur = SEL(hcur, clamp(hk * fac, RV((REAL)1e-4 * h), RV(h)), active && isfinite(fac));
-        maskv moving = active && acc;
+        maskv moving = active && acc && !jumped;
 #else
         ode_incr(FIELD_ARGS, hk, reg, x, y, z, vx, vy, vz, &ix, &iy, &iz, &ivx, &ivy, &ivz);
-        maskv moving = active;
+        maskv moving = active && !jumped;
 #endif
 #ifdef FIELD_INTERFACE
         realv s_new = s_cur, reg_new = reg;
@@ -345,12 +412,12 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
         cvx = SEL(cvx, ncvx, go); cvy = SEL(cvy, ncvy, go); cvz = SEL(cvz, ncvz, go);
         st = SEL(st, RV(ST_NONFINITE), moving && bad);
 #ifdef ADAPTIVE_TOL
-        n += SEL(RV(0), RV(1), active); /* attempts: each costs the pair's 7 evaluations */
-        active = go || (active && !moving);
+        n += SEL(RV(0), RV(1), active && !jumped); /* attempts: each costs 7 evaluations */
 #else
         n += SEL(RV(0), RV(1), go);
-        active = go;
 #endif
+        /* rejected adaptive steps and straight flights stay active without stepping */
+        active = go || (active && !moving);
 #ifdef FIELD_INTERFACE
         s_cur = SEL(s_cur, s_new, go);
         reg = SEL(reg, reg_new, go);
