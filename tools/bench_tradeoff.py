@@ -96,6 +96,8 @@ def main() -> None:
         ]
         for precision in ("float32", "float64"):
             for cfg in configs:
+                if precision == "float32" and cfg.get("tol", 1) < 1e-9:
+                    continue  # refused: below float32's rounding
                 r = measure(field, o, d, ref, args.repeats, precision=precision, **cfg)
                 r.update(scene=name, precision=precision, **cfg)
                 rows.append(r)
