@@ -12,7 +12,9 @@ from .fields.base import Box, Field
 from .limits import check_count, check_device_buffer, max_steps_for
 from .runtime import Runtime, default_runtime
 
-INTEGRATORS = ("rkn4", "rk4", "euler")
+INTEGRATORS = ("rkn4", "rk4", "euler", "dopri5")
+# field evaluations per step (per attempted step for the adaptive pair)
+EVALS_PER_STEP = {"rkn4": 3, "rk4": 4, "euler": 1, "dopri5": 7}
 
 
 @dataclass
@@ -53,6 +55,16 @@ class Tracer:
     step: the increment of sigma (arc length / eta) per integrator step, in mm.
     lanes: rays per work-item; None picks the device's default (16 on CPUs, 1 on GPUs).
     adjoint: also build the backward-pass kernel (fields with parameters only).
+    tol: with integrator "dopri5", the local error per step (mm of position, and of v) that
+        its adaptive step keeps to; `step` is then the largest step, and TraceResult.steps
+        counts attempted steps (rejected ones cost evaluations too). Forward only: the
+        backward pass replays fixed steps, so adjoint=True refuses it.
+    skip_empty: rays fly straight through the cells of an occupancy_res^3 grid where eta is
+        constant (clrefract/occupancy.py), instead of stepping. Forward only (the backward
+        pass replays fixed steps): adjoint=True refuses it.
+    interface_steps: shorten steps that would cross a field's known kink (analytic fields:
+        the Luneburg surface, a solid's band edges) so that they land on it and the scheme
+        keeps its order there; False integrates across it (first order at the kink).
     """
 
     def __init__(
@@ -66,6 +78,10 @@ class Tracer:
         max_steps: int | None = None,
         runtime: Runtime | None = None,
         adjoint: bool = False,
+        interface_steps: bool = True,
+        tol: float | None = None,
+        skip_empty: bool = False,
+        occupancy_res: int = 32,
     ):
         box = box or Box()
         # a ray bent inside the box rarely travels more than a few diagonals
@@ -78,10 +94,54 @@ class Tracer:
         self.integrator, self.precision = integrator, precision
         self.lanes = lanes or self.runtime.default_lanes(precision)
         self.runtime.check_lanes(self.lanes, precision)
+        if tol is not None and max_steps is None:
+            # the adaptive pair's steps shrink where the field needs it: room for attempts
+            default_cap = max_steps_for(step / 64, float(np.linalg.norm(box.size)))
         self.max_steps = default_cap if max_steps is None else check_count("max_steps", max_steps)
         self.dtype = self.runtime.real_dtype(precision)
-        defines = {**field.defines(), **self.box.defines(), "LANES": self.lanes}
+        # Rays are traced relative to the box centre where the field can move with it
+        # (analytic fields, forward only): float32 positions 1e4 mm from the world origin
+        # would otherwise resolve only ~1e-3 mm. Learned fields and the backward pass keep
+        # world coordinates (gradient.py launches the kernels with them).
+        centre = 0.5 * (np.asarray(box.lo, float) + np.asarray(box.hi, float))
+        shiftable = hasattr(field, "params_shifted") and not adjoint
+        self.offset = centre if shiftable else np.zeros(3)
+        kbox = Box(tuple(box.lo - self.offset), tuple(box.hi - self.offset), box.margin)
+        defines = {**field.defines(), **kbox.defines(), "LANES": self.lanes}
         defines[f"INTEGRATOR_{integrator.upper()}"] = 1
+        self.tol = None if tol is None else float(tol)
+        if self.tol is not None:
+            if integrator != "dopri5":
+                raise ClrefractError(
+                    f"tol needs the adaptive integrator dopri5, not {integrator!r}"
+                )
+            if adjoint:
+                raise ClrefractError(
+                    "the adaptive integrator (dopri5 with tol) is forward only: the backward "
+                    "pass replays fixed steps; fit with rkn4 or rk4"
+                )
+            if not (np.isfinite(self.tol) and self.tol > 0):
+                raise ClrefractError(f"tol must be a positive number, got {tol!r}")
+            if precision == "float32" and self.tol < 1e-9:
+                # below float32's rounding of a step the error estimate never passes:
+                # every step shrinks to the floor (measured: 60x the evaluations at 1e-10)
+                raise ClrefractError(f"tol {tol:g} is below float32's rounding; use float64")
+            defines["ADAPTIVE_TOL"] = repr(self.tol)
+        self.interface_steps = bool(interface_steps)
+        if not self.interface_steps:
+            defines["NO_INTERFACE_STEPS"] = 1
+        self.skip_empty = bool(skip_empty)
+        if self.skip_empty:
+            if adjoint:
+                raise ClrefractError(
+                    "empty-space skipping is forward only: the backward pass replays fixed "
+                    "steps; fit without skip_empty"
+                )
+            from .occupancy import empty_distance
+
+            res = check_count("occupancy_res", occupancy_res, 1, 1024)
+            self.occupancy = empty_distance(field, box, res)
+            defines.update(SKIP_EMPTY=1, OCC_N=res)
         sources = ["common.h", field.source, "trace.cl"]
         if adjoint:
             adj = getattr(field, "adjoint_source", None)
@@ -97,6 +157,13 @@ class Tracer:
         self._k_eval = prg.eval_field
         cl = self.runtime.cl
         self._no_ckpt = cl.Buffer(self.runtime.context, cl.mem_flags.READ_WRITE, 64)
+        self._skip_args = []
+        if self.skip_empty:
+            mf = cl.mem_flags
+            occ = np.ascontiguousarray(self.occupancy.reshape(-1), np.int32)
+            self._skip_args = [
+                cl.Buffer(self.runtime.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=occ)
+            ]
         self.upload_field()
 
     def checkpoint_buffer(self, n_padded: int, every: int):
@@ -122,7 +189,7 @@ class Tracer:
         self._fp = cl.Buffer(
             ctx,
             mf.READ_ONLY | mf.COPY_HOST_PTR,
-            hostbuf=self._real(np.append(self.field.params(), 0.0)),
+            hostbuf=self._real(np.append(self._field_params(), 0.0)),
         )
         self._fd = cl.Buffer(
             ctx,
@@ -130,8 +197,20 @@ class Tracer:
             hostbuf=self._real(np.append(self.field.data(), 0.0)),
         )
 
+    def _field_params(self) -> np.ndarray:
+        if np.any(self.offset):
+            return self.field.params_shifted(self.offset)
+        return self.field.params()
+
     def _real(self, a) -> np.ndarray:
         return np.ascontiguousarray(a, dtype=self.dtype)
+
+    def _local(self, a, what: str) -> np.ndarray:
+        """World points to the kernels' frame, in float64 before any rounding."""
+        a = np.asarray(a, dtype=np.float64)
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise ClrefractError(f"{what} must have shape (n, 3), got {a.shape}")
+        return a - self.offset
 
     def _padded_columns(self, a: np.ndarray, what: str) -> tuple[list[np.ndarray], int]:
         a = np.asarray(a, dtype=np.float64)
@@ -174,7 +253,7 @@ class Tracer:
         self._enqueue(kernel, n_items, args, queue).finish()
 
     def trace(self, origins: np.ndarray, directions: np.ndarray) -> TraceResult:
-        o, n = self._padded_columns(origins, "ray origins")
+        o, n = self._padded_columns(self._local(origins, "ray origins"), "ray origins")
         d, _ = self._padded_columns(directions, "ray directions")
         if len(d[0]) != len(o[0]):
             raise ClrefractError("ray origins and directions differ in number")
@@ -189,33 +268,33 @@ class Tracer:
         outs = [Out(a) for a in p + v + [status, steps] + last]
         scal = [self.dtype(self.step), np.int32(self.max_steps)]
         no_ckpt = [np.int32(0), self._no_ckpt]
-        self._run(self._k_trace, m // self.lanes, scal + o + d + outs + no_ckpt)
+        self._run(self._k_trace, m // self.lanes, scal + o + d + outs + no_ckpt + self._skip_args)
         vel = np.stack(v, axis=1)[:n].astype(np.float64)
         speed = np.linalg.norm(vel, axis=1)
         return TraceResult(
-            position=np.stack(p, axis=1)[:n].astype(np.float64),
+            position=np.stack(p, axis=1)[:n].astype(np.float64) + self.offset,
             direction=vel / speed[:, None],
             speed=speed,
             status=status[:n].copy(),
             steps=steps[:n].copy(),
-            last_position=np.stack(last, axis=1)[:n].astype(np.float64),
+            last_position=np.stack(last, axis=1)[:n].astype(np.float64) + self.offset,
             last_velocity=vel,
         )
 
     def propagate(self, x: np.ndarray, v: np.ndarray, n_steps: int):
         """Advance states (x, v) by n_steps integrator steps, ignoring the box."""
-        xs, n = self._padded_columns(x, "positions")
+        xs, n = self._padded_columns(self._local(x, "positions"), "positions")
         vs, _ = self._padded_columns(v, "velocities")
         args = [self.dtype(self.step), np.int32(n_steps)] + [InOut(a) for a in xs + vs]
         self._run(self._k_propagate, len(xs[0]) // self.lanes, args)
         return (
-            np.stack(xs, axis=1)[:n].astype(np.float64),
+            np.stack(xs, axis=1)[:n].astype(np.float64) + self.offset,
             np.stack(vs, axis=1)[:n].astype(np.float64),
         )
 
     def eval_field(self, pts: np.ndarray):
         """eta (n,) and grad eta (n, 3) computed by the device kernel."""
-        xs, n = self._padded_columns(pts, "points")
+        xs, n = self._padded_columns(self._local(pts, "points"), "points")
         m = len(xs[0])
         outs = [np.empty(m, self.dtype) for _ in range(4)]
         self._run(self._k_eval, m // self.lanes, xs + [Out(a) for a in outs])

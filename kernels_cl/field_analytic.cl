@@ -18,6 +18,33 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
     return eta;
 }
 
+/* grad eta jumps at the surface: (r^2 - R^2) / 2R, about r - R there */
+#ifndef NO_INTERFACE_STEPS
+#define FIELD_INTERFACE 1
+#define INTERFACE_LO (REAL)0
+#define INTERFACE_HI (REAL)0
+inline realv field_interface(FIELD_PARAMS, realv x, realv y, realv z) {
+    realv px = x - fp[0], py = y - fp[1], pz = z - fp[2];
+    return (px * px + py * py + pz * pz - fp[3] * fp[3]) / (RV(2) * fp[3]);
+}
+/* One side's formula continued a little past the surface: region -1 inside, +1 outside,
+ * -2 by position (see interface_step in trace.cl). */
+inline realv field_eval_region(FIELD_PARAMS, realv x, realv y, realv z, realv region, realv *gx,
+                               realv *gy, realv *gz) {
+    realv px = x - fp[0], py = y - fp[1], pz = z - fp[2];
+    REAL R2 = fp[3] * fp[3];
+    realv r2 = px * px + py * py + pz * pz;
+    maskv in = SEL(region < RV(0), r2 < RV(R2), region < RV(-1.5));
+    realv inside = SEL(RV(0), RV(1), in);
+    realv eta = sqrt(fmax(RV(1) + inside * (RV(1) - r2 / R2), RV(REAL_EPS)));
+    realv k = -inside / (R2 * eta);
+    *gx = k * px;
+    *gy = k * py;
+    *gz = k * pz;
+    return eta;
+}
+#endif
+
 #elif defined(FIELD_MAXWELL)
 /* fp: cx cy cz R n0.  eta = n0 / (1 + r^2/R^2). */
 inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
@@ -189,4 +216,35 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
     *gz = k * nz;
     return RV(1) + dn * smoother(s);
 }
+
+/* The smoothstep's higher derivatives jump at the band edges sd = +-w/2. */
+#ifndef NO_INTERFACE_STEPS
+#define FIELD_INTERFACE 1
+#define INTERFACE_LO (-(REAL)0.5 * SOLID_W)
+#define INTERFACE_HI ((REAL)0.5 * SOLID_W)
+inline realv field_interface(FIELD_PARAMS, realv x, realv y, realv z) {
+    realv nx, ny, nz;
+    return solid_sdf(FIELD_ARGS, x, y, z, &nx, &ny, &nz);
+}
+/* One region's formula continued a little past its edges: region -1 inside (eta = n), 0 the
+ * band (the smoothstep's polynomial, unclamped), +1 outside (eta = 1), -2 by position. */
+inline realv field_eval_region(FIELD_PARAMS, realv x, realv y, realv z, realv region, realv *gx,
+                               realv *gy, realv *gz) {
+    realv nx, ny, nz;
+    realv sd = solid_sdf(FIELD_ARGS, x, y, z, &nx, &ny, &nz);
+    REAL w = SOLID_W, dn = SOLID_N - (REAL)1;
+    realv pos = SEL(SEL(RV(0), RV(1), sd > RV(0.5 * w)), RV(-1), sd < RV(-0.5 * w));
+    realv reg = SEL(region, pos, region < RV(-1.5));
+    realv t = RV(0.5) - sd / w;
+    realv band = SEL(RV(0), RV(1), reg == RV(0));
+    realv p = t * t * t * (t * (t * RV(6) - RV(15)) + RV(10));
+    realv dp = RV(30) * t * t * (t - RV(1)) * (t - RV(1));
+    realv frac = SEL(band * p, RV(1), reg < RV(-0.5));
+    realv k = -dn * band * dp / w;
+    *gx = k * nx;
+    *gy = k * ny;
+    *gz = k * nz;
+    return RV(1) + dn * frac;
+}
+#endif
 #endif

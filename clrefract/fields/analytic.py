@@ -24,6 +24,18 @@ class AnalyticField(Field):
     def to_dict(self) -> dict:
         return {"kind": self.kind, **{k: _plain(v) for k, v in asdict(self).items()}}
 
+    # where params() holds centre coordinates (x, y, z): shifted with the tracer's origin
+    center_slots = (0, 1, 2)
+
+    def params_shifted(self, offset) -> np.ndarray:
+        """params() for a frame whose origin is at `offset` (float64, on the host): the
+        tracer works relative to the box centre so that float32 keeps its resolution far
+        from the world origin."""
+        p = np.array(self.params(), float)
+        slots = np.asarray(self.center_slots, int)
+        p[slots] -= np.resize(np.asarray(offset, float), len(slots))
+        return p
+
 
 def _plain(v):
     if isinstance(v, tuple | list):
@@ -86,6 +98,7 @@ class Fibre(AnalyticField):
     a: float = 0.02
     center: tuple[float, float] = (0.0, 0.0)
     kind = "fibre"
+    center_slots = (0, 1)
 
     def params(self):
         return np.array([*self.center, self.n0, self.a], float)
@@ -134,6 +147,10 @@ class Blobs(AnalyticField):
 
     def defines(self):
         return {"FIELD_BLOBS": 1, "NBLOBS": len(self.amplitudes)}
+
+    @property
+    def center_slots(self):
+        return tuple(5 * k + a for k in range(len(self.amplitudes)) for a in range(3))
 
     def params(self):
         c = np.asarray(self.centers)
