@@ -1,0 +1,227 @@
+"""Straight-ray baselines: density + colour volumes fitted to the photographs without bending.
+
+Both keep density and linear colour on a dense node grid and render it by emission-absorption
+compositing along straight rays, the environment map behind (kernels_cl/straight_volume.cl):
+
+- synapse: the paper's Synapse-Volumetric, a fine voxel grid (128^3 by default);
+- meridian: the paper's Meridian Renderer holds density and colour in a neural field. Here it
+  is a coarse dense grid (48^3 by default) with a stronger smoothness penalty standing in for a
+  small field's smooth output: NOT a neural network (an honest simplification; the renderer,
+  straight-ray volume marching with the environment behind, is the part the comparison is
+  about).
+
+A run folder holds straight.json (settings), metrics.jsonl, straight.npz (the volume), run.json
+(dataset and box) and is scored by `clrefract eval` like any fit.
+
+Surface for the chamfer distance (these models have no index): marching cubes of density at
+ln 2 / cell, where one cell of that density lets half the light through.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..adam import Adam, ParamGroup
+from ..errors import ClrefractError
+from ..fields.base import Box
+from ..imageio import atomic_path, ensure_out_dir
+from ..loss import srgb
+from ..progress import Progress
+from .volume import StraightRenderer
+
+STYLES = {
+    "synapse": dict(res=128, reg=1e-4),
+    "meridian": dict(res=48, reg=1e-2),
+}
+
+
+@dataclass
+class StraightConfig:
+    style: str = "synapse"
+    res: int = 0  # 0: the style's
+    reg: float = -1.0  # weight of the smoothness penalty; < 0: the style's
+    iterations: int = 600
+    batch: int = 8192
+    lr_density: float = 0.01  # per mm
+    lr_colour: float = 0.02
+    lr_final: float = 0.1  # learning rates decay exponentially to this fraction
+    step: float = 0.0  # sample spacing, mm; 0: half a cell
+    precision: str = "float32"
+    device: str = ""
+    seed: int = 0
+
+    def resolved(self) -> StraightConfig:
+        if self.style not in STYLES:
+            raise ClrefractError(f"style must be one of {', '.join(STYLES)}, got {self.style!r}")
+        c = StraightConfig(**asdict(self))
+        c.res = c.res or STYLES[c.style]["res"]
+        c.reg = c.reg if c.reg >= 0 else STYLES[c.style]["reg"]
+        if c.res < 2 or c.iterations < 1 or c.batch < 1:
+            raise ClrefractError("res must be at least 2, iterations and batch at least 1")
+        return c
+
+
+def density_level(box: Box, res: int) -> float:
+    """The documented surface rule: density at which one cell absorbs half the light."""
+    return math.log(2.0) / float(np.min(box.size / (res - 1)))
+
+
+def smoothness(vol: np.ndarray, res: int) -> tuple[float, np.ndarray]:
+    """Mean squared difference of neighbouring nodes, per channel, and its gradient."""
+    v = vol.reshape(4, res, res, res)
+    grad = np.zeros_like(v)
+    total, count = 0.0, 0
+    for ax in (1, 2, 3):
+        d = np.diff(v, axis=ax)
+        total += float((d * d).sum())
+        count += d.size
+        lo, hi = [slice(None)] * 4, [slice(None)] * 4
+        lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+        grad[tuple(lo)] -= 2 * d
+        grad[tuple(hi)] += 2 * d
+    return total / count, grad.reshape(-1) / count
+
+
+def srgb_loss(colour: np.ndarray, target: np.ndarray, weight: np.ndarray):
+    """Mean squared sRGB difference (clipped to [0, 1], as the metrics) and dLoss/dcolour."""
+    enc, denc = srgb(colour)
+    resid = (enc - srgb(target)[0]) * weight[:, None]
+    n = max(resid.size, 1)
+    return float((resid**2).sum() / n), 2 * resid * denc / n
+
+
+class StraightModel:
+    """A fitted straight-ray volume, for `clrefract eval`."""
+
+    kind = "straight"
+
+    def __init__(self, vol: np.ndarray, box: Box, res: int, step: float, runtime=None):
+        self.vol, self.box, self.res = vol, box, res
+        self.renderer = StraightRenderer(box, res, step, runtime=runtime)
+        self.renderer.upload(vol)
+        level = density_level(box, res)
+        self.surface_rule = f"marching cubes of density at ln2/cell = {level:.4g} per mm"
+
+    @classmethod
+    def load(cls, path: Path, runtime=None) -> StraightModel:
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                vol, res, step = z["volume"], int(z["res"]), float(z["step"])
+                box = Box.from_dict(json.loads(str(z["box"])))
+        except Exception as exc:  # noqa: BLE001 - any damage is the user's to know about
+            raise ClrefractError(f"{path}: cannot read the straight-ray volume ({exc})") from None
+        return cls(vol, box, res, step, runtime=runtime)
+
+    def save(self, path: Path) -> None:
+        with atomic_path(path, suffix=".npz") as tmp:
+            with open(tmp, "wb") as f:
+                np.savez_compressed(
+                    f,
+                    volume=self.vol,
+                    res=self.res,
+                    step=self.renderer.step,
+                    box=json.dumps(self.box.to_dict()),
+                )
+
+    def render(self, cam, env) -> np.ndarray:
+        o, d = cam.rays()
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        rgb = np.empty((len(o), 3))
+        for s in range(0, len(o), 1 << 18):
+            sl = slice(s, s + (1 << 18))
+            rgb[sl] = self.renderer.render(o[sl], d[sl], env.lookup(d[sl]))[0]
+        return rgb.reshape(cam.height, cam.width, 3)
+
+    def eta(self, pts):
+        return None  # no index: eta RMSE is not applicable
+
+    def density(self, pts: np.ndarray) -> np.ndarray:
+        from ..fields.voxel import interpolate
+
+        vals = self.vol.reshape(4, self.res, self.res, self.res)[0]
+        return interpolate(vals, self.box, pts, "trilinear")[0]
+
+    slices_of = density
+
+    def surface(self, box):
+        from skimage.measure import marching_cubes
+
+        vol = self.vol.reshape(4, self.res, self.res, self.res)[0]
+        level = density_level(self.box, self.res)
+        if not (vol.min() < level < vol.max()):
+            return None
+        spacing = tuple(float(h) for h in self.box.size / (self.res - 1))
+        verts, faces, _, _ = marching_cubes(vol, level, spacing=spacing)
+        return verts + np.asarray(self.box.lo), faces
+
+
+def fit_straight(dataset: Path, out: Path, cfg: StraightConfig, stream=None) -> dict:
+    """Fit a straight-ray volume to a dataset's training views; returns the run summary."""
+    from ..dataset import Dataset
+    from ..runtime import Runtime
+
+    cfg = cfg.resolved()
+    stream = stream or sys.stderr
+    out = Path(out)
+    if (out / "straight.npz").exists() or (out / "field.npz").exists():
+        raise ClrefractError(f"{out} already holds a run; use another folder")
+    ensure_out_dir(out, "run folder")
+    ds = Dataset(dataset)
+    box = ds.box
+    runtime = Runtime(cfg.device or None)
+    step = cfg.step or 0.5 * float(np.min(box.size / (cfg.res - 1)))
+    origins, dirs, rgb = ds.rays_and_pixels("train")
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    weights = ds.pixel_weights("train")
+    bg = ds.envmap().lookup(dirs).astype(np.float64)
+    n_nodes = cfg.res**3
+    vol = np.zeros(4 * n_nodes)
+    vol[n_nodes:] = 0.5  # grey where the density will grow; empty space shows the background
+    model = StraightModel(vol.reshape(4, -1), box, cfg.res, step, runtime=runtime)
+    adam = Adam(
+        vol.size,
+        [
+            ParamGroup("density", 0, n_nodes, cfg.lr_density),
+            ParamGroup("colour", n_nodes, 4 * n_nodes, cfg.lr_colour),
+        ],
+    )
+    (out / "straight.json").write_text(json.dumps(asdict(cfg), indent=2))
+    (out / "run.json").write_text(
+        json.dumps({"dataset": str(Path(dataset).resolve()), "box": box.to_dict()}, indent=2)
+    )
+    rng = np.random.default_rng(cfg.seed)
+    bar = Progress(cfg.iterations, f"fit {cfg.style}", unit="it", stream=stream)
+    t_start = time.perf_counter()
+    losses = []
+    with (out / "metrics.jsonl").open("w") as mf:
+        for it in range(cfg.iterations):
+            t0 = time.perf_counter()
+            idx = rng.integers(0, len(origins), size=min(cfg.batch, len(origins)))
+            colour, _ = model.renderer.render(origins[idx], dirs[idx], bg[idx])
+            loss, dl_dc = srgb_loss(colour, rgb[idx], weights[idx])
+            grad = model.renderer.backward(origins[idx], dirs[idx], bg[idx], colour, dl_dc)
+            reg, greg = smoothness(vol, cfg.res)
+            adam.step(vol, grad + cfg.reg * greg, lr_scale=cfg.lr_final ** (it / cfg.iterations))
+            np.clip(vol, 0.0, None, out=vol)  # density and colour are non-negative
+            model.renderer.upload(vol)
+            losses.append(loss)
+            m = {"iteration": it + 1, "loss": loss, "reg": reg}
+            m["seconds"] = time.perf_counter() - t0
+            mf.write(json.dumps(m) + "\n")
+            bar.update(1, loss=loss)
+    model.vol = vol.reshape(4, -1)
+    model.save(out / "straight.npz")
+    return {
+        "style": cfg.style,
+        "iterations": cfg.iterations,
+        "first_loss": losses[0],
+        "final_loss": losses[-1],
+        "train_seconds": time.perf_counter() - t_start,
+    }
