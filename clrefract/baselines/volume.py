@@ -73,4 +73,4 @@ class StraightRenderer:
         extra = [np.int32(n), self._in(colour), self._in(dl_dc), b_g]
         self.k.straight_backward(q, (n,), None, *args, *extra)
         cl.enqueue_copy(q, grad, b_g)
-        return grad.astype(np.float64)
+        return grad
