@@ -117,3 +117,15 @@ def test_eval_of_a_broken_run_is_one_line(tmp_path, capsys, make, words):
     assert main(["eval", str(run)]) == 2
     err = capsys.readouterr().err.strip()
     assert words in err and len(err.splitlines()) == 1
+
+
+def test_eval_of_an_older_run_without_run_json(sphere_data, tmp_path, capsys):
+    """Runs made before run.json and config.toml: the dataset's box and the default step."""
+    run = _truth_run(tmp_path / "run", sphere_data)
+    (run / "run.json").unlink()
+    assert main(["eval", str(run), "--views", "1"]) == 2  # which dataset? it must be told
+    err = capsys.readouterr().err.strip()
+    assert "--dataset" in err and len(err.splitlines()) == 1
+    res = evaluate_run(run, sphere_data, views=1, figures=False, samples=5000)
+    assert res["psnr"] > 15 and res["chamfer_mm"] < 1.5
+    assert any("no config.toml" in n for n in res["notes"])
