@@ -29,6 +29,7 @@ class EtaModel:
     """A fitted index field, rendered through curved rays by the fit's own tracer."""
 
     kind = "eta"
+    slice_label = "eta, fitted"
 
     def __init__(self, field, box, cfg, eta_hi: float, runtime=None):
         from .tracer import Tracer
@@ -168,7 +169,7 @@ def _slices_figure(path: Path, model, truth, box, res: int = 96) -> None:
     from .report import _plt
 
     planes = ((0, 1), (0, 2), (1, 2))
-    rows = [(model.kind, [model.slices_of(_plane_points(box, p, res)) for p in planes])]
+    rows = [(model.slice_label, [model.slices_of(_plane_points(box, p, res)) for p in planes])]
     if truth is not None:
         rows.append(("eta, truth", [truth.eval(_plane_points(box, p, res))[0] for p in planes]))
     plt = _plt()
