@@ -27,8 +27,10 @@ SCENES = ("sphere", "prism", "drop")
 
 # Budgets. tiny: a smoke test of the whole pipeline (minutes, meaningless scores). quick: the
 # issue's 128 x 128 protocol, sized for about 90 minutes for all twelve runs on 2 CPU cores
-# (budgets set from per-iteration costs, not yet timed end to end). standard: 256 x 256 and
-# four times the iterations. full: the paper's 800 x 800 and 20,000 iterations, for GPUs.
+# from costs measured on the sphere with the machine shared (load 7.5, 2026-11-23): dataset
+# 18 s; grid start 147 s then 1.0 s per step of 8192 rays; synapse about 1 s and meridian
+# about 0.3 s per step. Not yet timed end to end. standard: 256 x 256 and four times the
+# iterations. full: the paper's 800 x 800 and 20,000 iterations, for GPUs.
 PROTOCOLS: dict[str, dict] = {
     "tiny": {
         "data": dict(views=12, res=32, env_width=512, volume_res=16),
