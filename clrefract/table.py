@@ -34,6 +34,7 @@ SCENES = ("sphere", "prism", "drop")
 PROTOCOLS: dict[str, dict] = {
     "tiny": {
         "data": dict(views=12, res=32, env_width=512, volume_res=16),
+        "eval": dict(samples=20000),  # chamfer samples per side (the protocol's 100k elsewhere)
         "methods": {
             "grid": dict(res=16, iterations=10, batch=2048, validate_every=5),
             "meridian": dict(res=16, iterations=20, batch=2048),
@@ -113,7 +114,7 @@ def run_job(protocol: str, scene: str, method: str, out: Path, data_root: Path, 
         wall = run_method(method, data, run, PROTOCOLS[protocol]["methods"][method], stream)
         wall_file.write_text(json.dumps(wall))
         t0 = time.perf_counter()
-        scores = evaluate_run(run)
+        scores = evaluate_run(run, **PROTOCOLS[protocol].get("eval", {}))
         wall["eval_seconds"] = time.perf_counter() - t0
         wall_file.write_text(json.dumps(wall))
     m = METHODS[method]
