@@ -188,18 +188,31 @@ def _slices_figure(path: Path, model, truth, box, res: int = 96) -> None:
 
 
 def _surface_figure(path: Path, mesh, truth_mesh) -> None:
+    """Cross-sections: points spread over the extracted surface (blue) and the truth's
+    (grey) within 2 mm of the three central planes through the truth's centre; flat and
+    quick, where a 3-D plot of thousands of triangles is neither."""
+    from .metrics import sample_surface
     from .report import _plt
 
     plt = _plt()
-    fig = plt.figure(figsize=(5, 5))
-    ax = fig.add_subplot(projection="3d")
-    rng = np.random.default_rng(0)
-    for (v, f), colour in ((truth_mesh, "0.6"), (mesh, "tab:blue")):
-        if v is None:
+    fig, ax = plt.subplots(1, 3, figsize=(11, 3.8))
+    centre = np.mean((truth_mesh or mesh)[0], axis=0)
+    for m, colour, label in ((truth_mesh, "0.6", "truth"), (mesh, "tab:blue", "extracted")):
+        if m is None:
             continue
-        f = f[rng.choice(len(f), min(len(f), 6000), replace=False)]  # keep the plot quick
-        ax.plot_trisurf(v[:, 0], v[:, 1], v[:, 2], triangles=f, color=colour, alpha=0.35, lw=0)
-    ax.set(xlabel="x mm", ylabel="y mm", zlabel="z mm", title="extracted (blue), truth (grey)")
+        p = sample_surface(m[0], m[1], 60000, seed=3)
+        for a, (i, j, k) in zip(ax, ((0, 1, 2), (0, 2, 1), (1, 2, 0))):
+            near = np.abs(p[:, k] - centre[k]) < 2.0
+            a.scatter(p[near, i], p[near, j], s=0.5, c=colour, label=label)
+    for a, (x, y) in zip(ax, ("xy", "xz", "yz")):
+        a.set(
+            xlabel=f"{x} mm",
+            ylabel=f"{y} mm",
+            aspect="equal",
+            title=f"surface near the {x}{y} plane",
+        )
+    ax[0].legend(markerscale=10, fontsize=8)
+    fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=90)
     plt.close(fig)
@@ -288,9 +301,7 @@ def evaluate_run(
             _guard(
                 result,
                 "surface.png",
-                lambda: _surface_figure(
-                    out / "surface.png", mesh or (None, None), truth_mesh or (None, None)
-                ),
+                lambda: _surface_figure(out / "surface.png", mesh, truth_mesh),
             )
     result["notes"] = notes
     with atomic_path(out / "eval.json", suffix=".json") as tmp:
