@@ -1,6 +1,6 @@
 """clrefract: recover index-of-refraction fields from photographs through curved rays.
 
-Commands: devices, render, dataset make, dataset import, dataset check, fit."""
+Commands: devices, render, dataset make, dataset import, dataset check, fit, eval."""
 
 from __future__ import annotations
 
@@ -317,6 +317,20 @@ def _check_resume_flags(run: Path, overrides: dict, config: str | None) -> None:
         )
 
 
+def _cmd_eval(args) -> int:
+    from .evaluate import evaluate_run, format_table
+
+    result = evaluate_run(
+        Path(args.run),
+        Path(args.dataset) if args.dataset else None,
+        Path(args.out) if args.out else None,
+        views=args.views,
+        figures=not args.no_figures,
+    )
+    print(format_table(result), end="")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="clrefract", description=__doc__)
     ap.add_argument(
@@ -456,6 +470,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int)
     p.add_argument("--test-views", type=int, help="test views rendered at the end (-1 all)")
     p.set_defaults(func=_cmd_fit)
+
+    p = sub.add_parser("eval", help="score a run: PSNR, SSIM, chamfer distance, eta RMSE")
+    p.add_argument("run", help="run folder (of `clrefract fit` or a baseline)")
+    p.add_argument("--dataset", help="dataset folder (default: the one the run names)")
+    p.add_argument("--out", help="folder for eval.json, eval.md and figures (default RUN/eval)")
+    p.add_argument("--views", type=int, default=-1, help="score the first N test views (-1 all)")
+    p.add_argument("--no-figures", action="store_true", help="scores only")
+    p.set_defaults(func=_cmd_eval)
     return ap
 
 

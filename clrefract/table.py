@@ -1,0 +1,238 @@
+"""The paper's Table 1, measured: every method on every scene under a named protocol.
+
+A protocol fixes the datasets (views, image size) and each method's budget. Jobs are the
+(scene, method) pairs in a fixed order; `--shard i/n` takes every n-th of them from the i-th
+(1-based), so machines split a protocol without talking; each shard writes its records to
+shard-i-of-n.json and `merge` joins the shards' records into the table. A job whose run folder
+already holds eval/eval.json is not run again (a shard that stopped can be started again).
+
+Outputs: table.md (readable: the mean over scenes beside the paper's figures, then each scene),
+table.csv and table.json (one record per run).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from .baselines.methods import METHODS, run_method
+from .errors import ClrefractError
+
+SCENES = ("sphere", "prism", "drop")
+
+# Budgets. tiny: a smoke test of the whole pipeline (minutes, meaningless scores). quick: the
+# issue's 128 x 128 protocol, sized for about 90 minutes for all twelve runs on 2 CPU cores
+# from costs measured on the sphere with the machine shared (load 7.5, 2026-11-23): dataset
+# 18 s; grid start 147 s then 1.0 s per step of 8192 rays; synapse about 1 s and meridian
+# about 0.3 s per step. Not yet timed end to end. standard: 256 x 256 and four times the
+# iterations. full: the paper's 800 x 800 and 20,000 iterations, for GPUs.
+PROTOCOLS: dict[str, dict] = {
+    "tiny": {
+        "data": dict(views=12, res=32, env_width=512, volume_res=16),
+        "eval": dict(samples=20000),  # chamfer samples per side (the protocol's 100k elsewhere)
+        "methods": {
+            "grid": dict(res=16, iterations=10, batch=2048, validate_every=5),
+            "meridian": dict(res=16, iterations=20, batch=2048),
+            "synapse": dict(res=24, iterations=20, batch=2048),
+            "vertexnet": dict(
+                iterations=10, batch=2048, levels=4, log2_table=12, distil_iterations=50
+            ),
+        },
+    },
+    "quick": {
+        "data": dict(views=100, res=128),
+        "methods": {
+            "grid": dict(iterations=300, batch=8192),
+            "meridian": dict(iterations=600, batch=8192),
+            # 128^3 x 4 values: about 1 s per step on 2 busy cores (the backward's atomics)
+            "synapse": dict(iterations=300, batch=8192),
+            "vertexnet": dict(iterations=400, batch=8192),
+        },
+    },
+    "standard": {
+        "data": dict(views=100, res=256),
+        "methods": {
+            "grid": dict(iterations=1200, batch=16384),
+            "meridian": dict(iterations=2400, batch=16384),
+            "synapse": dict(iterations=2400, batch=16384),
+            "vertexnet": dict(iterations=1600, batch=16384),
+        },
+    },
+    "full": {
+        "data": dict(views=100, res=800),
+        "methods": {m: dict(iterations=20000, batch=65536) for m in METHODS},
+    },
+}
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    try:
+        i, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise ClrefractError(f"--shard must be i/n, e.g. 1/4, got {text!r}") from None
+    if not 1 <= i <= n:
+        raise ClrefractError(f"--shard {text}: need 1 <= i <= n")
+    return i, n
+
+
+def jobs(scenes, methods, shard: tuple[int, int] = (1, 1)) -> list[tuple[str, str]]:
+    all_jobs = [(s, m) for s in scenes for m in methods]
+    i, n = shard
+    return all_jobs[i - 1 :: n]
+
+
+def dataset_for(protocol: str, scene: str, data_root: Path) -> Path:
+    """The protocol's dataset of a scene, made once and then reused."""
+    from .synth import MakeOptions, make_dataset
+
+    out = data_root / protocol / scene
+    if not (out / "scene.json").is_file():
+        make_dataset(scene, out, MakeOptions(**PROTOCOLS[protocol]["data"]))
+    return out
+
+
+def run_job(protocol: str, scene: str, method: str, out: Path, data_root: Path, stream=None):
+    """Train and score one method on one scene; the record of the run."""
+    from .evaluate import evaluate_run
+
+    run = out / "runs" / f"{scene}-{method}"
+    done = run / "eval" / "eval.json"
+    wall_file = run / "wall.json"
+    if done.is_file() and wall_file.is_file():
+        scores, wall = json.loads(done.read_text()), json.loads(wall_file.read_text())
+    else:
+        data = dataset_for(protocol, scene, data_root)
+        if run.exists():  # an unfinished earlier attempt: start it afresh
+            import shutil
+
+            shutil.rmtree(run)
+        wall = run_method(method, data, run, PROTOCOLS[protocol]["methods"][method], stream)
+        wall_file.write_text(json.dumps(wall))
+        t0 = time.perf_counter()
+        scores = evaluate_run(run, **PROTOCOLS[protocol].get("eval", {}))
+        wall["eval_seconds"] = time.perf_counter() - t0
+        wall_file.write_text(json.dumps(wall))
+    m = METHODS[method]
+    return {
+        "protocol": protocol,
+        "scene": scene,
+        "method": method,
+        "paper_name": m.paper_name,
+        "psnr": scores["psnr"],
+        "ssim": scores["ssim"],
+        "chamfer_mm": scores["chamfer_mm"],
+        "eta_rmse": scores["eta_rmse"],
+        "wall_seconds": wall["wall_seconds"],
+        "paper_psnr": m.paper[0],
+        "paper_ssim": m.paper[1],
+        "paper_chamfer_mm": m.paper[2],
+        "run": str(run),
+    }
+
+
+def run_protocol(
+    protocol: str,
+    out: Path,
+    shard=(1, 1),
+    scenes=SCENES,
+    methods=tuple(METHODS),
+    data_root: Path | None = None,
+    stream=None,
+) -> list[dict]:
+    if protocol not in PROTOCOLS:
+        raise ClrefractError(f"unknown protocol {protocol!r}; protocols: {', '.join(PROTOCOLS)}")
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        raise ClrefractError(f"unknown method(s) {bad}; methods: {', '.join(METHODS)}")
+    out.mkdir(parents=True, exist_ok=True)
+    data_root = data_root or out / "data"
+    records = []
+    path = out / f"shard-{shard[0]}-of-{shard[1]}.json"
+    for scene, method in jobs(scenes, methods, shard):
+        print(f"table: {protocol} {scene} {method}", file=stream or sys.stderr)
+        records.append(run_job(protocol, scene, method, out, data_root, stream))
+        path.write_text(json.dumps(records, indent=2))  # after each run: a stop loses one
+    return records
+
+
+def merge(folders: list[Path]) -> list[dict]:
+    """Records of every shard file in the folders, one per (protocol, scene, method)."""
+    seen: dict[tuple, dict] = {}
+    for f in folders:
+        for path in sorted(Path(f).glob("shard-*-of-*.json")):
+            for r in json.loads(path.read_text()):
+                seen[(r["protocol"], r["scene"], r["method"])] = r
+    if not seen:
+        raise ClrefractError(f"no shard-*-of-*.json in {', '.join(map(str, folders))}")
+    order = {m: k for k, m in enumerate(METHODS)}
+    return sorted(seen.values(), key=lambda r: (r["scene"], order.get(r["method"], 99)))
+
+
+def _num(x) -> float | None:
+    return x if isinstance(x, int | float) and x is not None and math.isfinite(x) else None
+
+
+def _mean(rows, key):
+    vals = [_num(r[key]) for r in rows]
+    return None if not vals or any(v is None for v in vals) else sum(vals) / len(vals)
+
+
+def _f(x, digits):
+    if isinstance(x, str):
+        return x
+    return "-" if _num(x) is None else f"{x:.{digits}f}"
+
+
+def markdown(records: list[dict]) -> str:
+    protocol = records[0]["protocol"]
+    scenes = sorted({r["scene"] for r in records})
+    lines = [
+        f"## Table 1, measured ({protocol} protocol; scenes: {', '.join(scenes)})",
+        "",
+        "Mean over scenes; the paper's figures (its own benchmark, 800 x 800) in brackets. "
+        "A dash: missing on some scene.",
+        "",
+        "| Method | PSNR | SSIM | D_C (mm) | eta RMSE | wall time (s) |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for method in METHODS:
+        rows = [r for r in records if r["method"] == method]
+        if not rows:
+            continue
+        r0 = rows[0]
+        eta = "n/a" if all(r["eta_rmse"] == "n/a" for r in rows) else _f(_mean(rows, "eta_rmse"), 4)
+        lines.append(
+            f"| {r0['paper_name']} | {_f(_mean(rows, 'psnr'), 2)} ({r0['paper_psnr']:.2f}) "
+            f"| {_f(_mean(rows, 'ssim'), 3)} ({r0['paper_ssim']:.3f}) "
+            f"| {_f(_mean(rows, 'chamfer_mm'), 2)} ({r0['paper_chamfer_mm']:.2f}) "
+            f"| {eta} | {sum(r['wall_seconds'] for r in rows):.0f} |"
+        )
+    lines += [
+        "",
+        "### Per scene",
+        "",
+        "| Scene | Method | PSNR | SSIM | D_C (mm) | eta RMSE | wall time (s) |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in records:
+        lines.append(
+            f"| {r['scene']} | {r['paper_name']} | {_f(r['psnr'], 2)} | {_f(r['ssim'], 3)} "
+            f"| {_f(r['chamfer_mm'], 2)} | {_f(r['eta_rmse'], 4)} | {r['wall_seconds']:.0f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_table(records: list[dict], out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "table.md").write_text(markdown(records))
+    (out / "table.json").write_text(json.dumps(records, indent=2))
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(records[0]))
+    w.writeheader()
+    w.writerows(records)
+    (out / "table.csv").write_text(buf.getvalue())
