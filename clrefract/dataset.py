@@ -302,14 +302,9 @@ MASK_DIR = "masks"
 def read_mask(path: Path, cam: Camera) -> np.ndarray:
     """A mask image as (H, W) bool: above half grey in its first channel, or where its alpha
     channel (if it varies) is above half."""
-    import imageio.v3 as iio
+    from .imageio import read_pillow
 
-    if not path.is_file():
-        raise ClrefractError(f"{path}: mask file not found")
-    try:
-        raw = np.asarray(iio.imread(path, plugin="pillow"))
-    except Exception:  # imageio's messages suggest plugins to install; not useful here
-        raise ClrefractError(f"{path}: not a readable mask image") from None
+    raw = read_pillow(path, "mask", "mask image")
     if raw.ndim == 3:  # alpha where it varies (a cut-out), else the grey level
         varies = raw.shape[2] in (2, 4) and raw[..., -1].min() != raw[..., -1].max()
         raw = raw[..., -1] if varies else raw[..., 0]

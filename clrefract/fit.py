@@ -230,9 +230,16 @@ def make_field(cfg: FitConfig, box, eta_max: float, res: int):
         from .fields.voxel import VoxelGrid
 
         return VoxelGrid(np.ones((res, res, res)), box, interp=cfg.interp, eta_max=eta_max)
-    from .fields.hashgrid import HashGridConfig, HashGridField
+    from .fields.hashgrid import HashGridField
 
-    hc = HashGridConfig(
+    return HashGridField(hashgrid_config(cfg, eta_max), box, seed=cfg.seed)
+
+
+def hashgrid_config(cfg: FitConfig, eta_max: float = 1.6):
+    """The hash grid a fit configuration describes."""
+    from .fields.hashgrid import HashGridConfig
+
+    return HashGridConfig(
         levels=cfg.levels,
         features=cfg.features,
         log2_table=cfg.log2_table,
@@ -242,7 +249,6 @@ def make_field(cfg: FitConfig, box, eta_max: float, res: int):
         layers=cfg.layers,
         eta_max=eta_max,
     )
-    return HashGridField(hc, box, seed=cfg.seed)
 
 
 def fit_to_field(field, source, width: float, iterations: int, seed: int = 0) -> float:

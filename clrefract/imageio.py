@@ -105,16 +105,21 @@ def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, hi).astype(np.float32)
 
 
+def read_pillow(path: PathLike, what: str, kind: str) -> np.ndarray:
+    """The pixels of an 8- or 16-bit image file, or a one-line error naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise ClrefractError(f"{path}: {what} file not found")
+    try:
+        return np.asarray(iio.imread(path, plugin="pillow"))
+    except Exception:  # imageio's messages suggest plugins to install; not useful here
+        raise ClrefractError(f"{path}: not a readable {kind}") from None
+
+
 def read_photo_rgb(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Linear RGB (H, W, 3) float32 of an sRGB PNG or JPEG (8 or 16 bits, grey or colour,
     alpha ignored), and the (H, W) bool map of pixels clipped in some channel."""
-    path = Path(path)
-    if not path.is_file():
-        raise ClrefractError(f"{path}: image file not found")
-    try:
-        raw = np.asarray(iio.imread(path, plugin="pillow"))
-    except Exception:  # imageio's messages suggest plugins to install; not useful here
-        raise ClrefractError(f"{path}: not a readable PNG or JPEG image") from None
+    raw = read_pillow(path, "image", "PNG or JPEG image")
     if raw.dtype not in (np.uint8, np.uint16) or raw.ndim not in (2, 3):
         raise ClrefractError(f"{path}: unsupported image layout {raw.shape} of {raw.dtype}")
     if raw.ndim == 2:

@@ -36,18 +36,9 @@ def grad_sizes() -> dict[str, int]:
     voxel grids."""
     from clrefract.fields.base import Box
     from clrefract.fields.hashgrid import HashGridConfig, HashGridField
-    from clrefract.fit import FitConfig
+    from clrefract.fit import FitConfig, hashgrid_config
 
-    f = FitConfig()
-    fit_hg = HashGridConfig(
-        levels=f.levels,
-        features=f.features,
-        log2_table=f.log2_table,
-        n_min=f.n_min,
-        n_max=f.n_max,
-        hidden=f.hidden,
-        layers=f.layers,
-    )
+    fit_hg = hashgrid_config(FitConfig())
     sizes = {"hashgrid (fit default)": len(HashGridField(fit_hg, Box()).data())}
     sizes["hashgrid (instant-ngp)"] = len(HashGridField(HashGridConfig(), Box()).data())
     for r in (32, 64, 128):
