@@ -279,8 +279,8 @@ def blob_dataset(tmp_path_factory):
 
 
 def test_tiny_hashgrid_fit_cuts_the_loss(blob_dataset, tmp_path):
-    """Fit iterations (no final report: scoring evaluates the field on 128^3 points) on a
-    blob of eta 1.08: the loss halves and eta rises at the blob's centre."""
+    """Fit iterations from an empty box (the adjoint loop alone, not the start search; no
+    final report) on a blob of eta 1.08: the loss halves and eta rises at its centre."""
     cfg = load_config(
         None,
         dict(
@@ -296,6 +296,7 @@ def test_tiny_hashgrid_fit_cuts_the_loss(blob_dataset, tmp_path):
             lr_table=0.3,
             lr_mlp=0.03,
             env_blur=0.0,
+            init="empty",
         ),
     )
     fit = Fit(blob_dataset, tmp_path, cfg, stream=io.StringIO())

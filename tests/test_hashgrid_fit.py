@@ -45,11 +45,12 @@ def test_hash_grid_starts_from_the_hull_in_the_objects_box(sphere, tmp_path):
     assert abs(info["eta"] - 1.5) < 0.06, info
     assert info["distilled_rms"] < 0.03, info
     assert np.all(fit.box.size < 70) and np.all(fit.box.size > 40)
-    # against the empty box (the field's own initialisation, eta = 1): at 48 x 48 pixels
-    # the hash grid's start renders only a little better (measured 0.2 to 1.0 dB), as its
-    # normals are a few degrees off, but its eta is far nearer the truth
+    # against the empty box (the field's own initialisation, eta = 1), 48 x 48 pixels:
+    # measured +2.5 dB. Before the index headroom and a step of a quarter of the interface
+    # it was +0.2 to +1.0 dB, as noise in eta inside the glass bent every ray
     empty = _empty_scores(fit)
-    assert start["test_psnr"] > empty["test_psnr"], (start, empty)
+    assert start["test_psnr"] > empty["test_psnr"] + 1.5, (start, empty)
+    assert fit.eta_max < 1 + (info["eta"] - 1) * 1.05
     assert start["eta_rmse"] < empty["eta_rmse"] / 2, (start, empty)
     assert start["chamfer_mm"] < 1.0, start
     result = fit.run()
@@ -57,6 +58,9 @@ def test_hash_grid_starts_from_the_hull_in_the_objects_box(sphere, tmp_path):
     assert "start" in result and "psnr_gain_over_start" in result
     field = load_field_file(tmp_path / "run" / "field.npz")
     assert isinstance(field, HashGridField)
+    # a resumed run rebuilds the same field: eta_max from the run, not the scene's bound
+    again = prepare_fit(sphere, tmp_path / "run", _cfg(), resume=True)
+    assert again.field.config == fit.field.config
     assert field.box.to_dict() == fit.box.to_dict()
 
 
