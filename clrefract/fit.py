@@ -369,14 +369,19 @@ class Fit:
         self._fill_hull()
         if not self.cfg.eta_max:
             self.eta_max = 1 + (self.init_info["eta"] - 1) * (1 + self.cfg.index_headroom)
-        field = self._make_field(0)
-        rms = fit_to_field(
-            field, self.field, self.cfg.width, self.cfg.distil_iterations, self.cfg.seed
-        )
+        rms = self.start_from(self.field)
         self.init_info["distilled_rms"] = rms
         self.stream.write(f"start: hash grid fitted to the level-set start (eta RMS {rms:.4f})\n")
         (self.out / "init.json").write_text(json.dumps(self.init_info, indent=2))
+
+    def start_from(self, source) -> float:
+        """Start the hash grid as another field (`source.eval`) fitted into it, in the
+        current box; returns the RMS error of eta."""
+        field = self._make_field(0)
+        rms = fit_to_field(field, source, self.cfg.width, self.cfg.distil_iterations, self.cfg.seed)
         self._bind(field)
+        self.adam = Adam(len(self.params), self._groups())
+        return rms
 
     # --- the visual hull: where the object can be -------------------------------------------
     def _hull_fit(self) -> bool:
@@ -684,10 +689,15 @@ class Fit:
     def _forward_loss(self, idx: np.ndarray) -> float:
         """Loss of the current field on training rays idx, against the sharp environment
         (forward pass only)."""
+        from .tracer import Status
+
         r = self.engine.tracer.trace(self.origins[idx], self.dirs[idx])
-        ok = (r.status == 0) * self.weights[idx]
+        dark = (r.status == Status.TRAPPED) | (r.status == Status.NONFINITE)
+        ok = ((r.status == Status.EXITED) | dark) * self.weights[idx]
         return float(
-            photometric_loss(self._env_full, r.direction, self.rgb[idx], ok, self.cfg.loss)[0]
+            photometric_loss(
+                self._env_full, r.direction, self.rgb[idx], ok, self.cfg.loss, dark=dark
+            )[0]
         )
 
     def validation_loss(self) -> float:

@@ -159,8 +159,12 @@ class GradientEngine:
             status[idx] = st[:m]
             steps += int(sp[:m].sum())
         exited = status == Status.EXITED
-        weight = exited.astype(float) if weights is None else exited * np.asarray(weights)
-        loss, mu, rad = photometric_loss(env, vel, targets, weight=weight, space=self.loss_space)
+        dark = (status == Status.TRAPPED) | (status == Status.NONFINITE)
+        counted = exited | dark
+        weight = counted.astype(float) if weights is None else counted * np.asarray(weights)
+        loss, mu, rad = photometric_loss(
+            env, vel, targets, weight=weight, space=self.loss_space, dark=dark
+        )
         mu[~exited] = 0.0
 
         n_par = len(self.field.data())

@@ -62,18 +62,27 @@ def photometric_loss(
     target: np.ndarray,
     weight: np.ndarray | None = None,
     space: str = "srgb",
+    dark: np.ndarray | None = None,
 ):
     """Mean squared error over rays and channels, and the terminal adjoint dJ/dv (n, 3).
 
     velocity: exit v (n, 3), not necessarily unit; target: (n, 3) linear radiance;
-    weight: (n,) 0/1 mask of rays that count (rays that did not exit get 0);
+    weight: (n,) 0/1 mask of rays that count (rays that missed the box get 0);
     space: "srgb" compares sRGB-encoded values clipped to [0, 1], as the test metrics do
-    (bright lamps then do not dominate), "linear" compares radiance.
+    (bright lamps then do not dominate), "linear" compares radiance;
+    dark: (n,) rays that render black (trapped or non-finite), as the renderer draws them:
+    radiance 0 and no adjoint. Were they left out, trapping a badly rendered ray would
+    lower the loss.
     """
     v = np.asarray(velocity, np.float64)
+    if dark is not None:
+        dark = np.asarray(dark, bool)
+        v = np.where(dark[:, None], (0.0, 0.0, 1.0), v)
     speed = np.linalg.norm(v, axis=1)
     d = v / speed[:, None]
     rad, jac = envmap_lookup_jacobian(env, d)
+    if dark is not None:
+        rad, jac = np.where(dark[:, None], 0.0, rad), np.where(dark[:, None, None], 0.0, jac)
     wgt = np.ones(len(v)) if weight is None else np.asarray(weight, np.float64)
     if space == "srgb":
         enc, denc = srgb(rad)

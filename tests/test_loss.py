@@ -47,3 +47,24 @@ def test_loss_gradient_matches_fd_along_random_directions(space):
         )
         hits += abs(fd / 2 - (g * u).sum()) < 1e-3 * abs((g * u).sum()) + 1e-15
     assert hits >= 9
+
+
+def test_dark_rays_cost_their_target_and_carry_no_adjoint():
+    """Trapped and non-finite rays render black: the loss counts them as black (trapping a
+    ray must not lower it) and gives them no adjoint, even where v is not finite."""
+    from clrefract.loss import srgb
+
+    env = _env()
+    rng = np.random.default_rng(2)
+    v = rng.normal(size=(50, 3))
+    v[3] = np.nan
+    target = env.lookup(rng.normal(size=(50, 3))).astype(np.float64)
+    dark = np.zeros(50, bool)
+    dark[[3, 7, 11]] = True
+    loss, g, rad = photometric_loss(env, v, target, dark=dark)
+    lit, _, _ = photometric_loss(env, v[~dark], target[~dark])
+    black = (srgb(target[dark])[0] ** 2).sum()
+    assert loss == pytest.approx((lit * 47 * 3 + black) / (50 * 3), rel=1e-12)
+    assert np.all(rad[dark] == 0) and np.all(g[dark] == 0) and np.all(np.isfinite(g))
+    # left out instead (weight 0), the same rays would lower the loss
+    assert photometric_loss(env, np.where(dark[:, None], 1.0, v), target, weight=~dark)[0] < loss
