@@ -26,7 +26,6 @@ from .dataset import Dataset
 from .errors import ClrefractError
 from .imageio import atomic_path, ensure_out_dir
 from .limits import check_fit_config
-from .loss import photometric_loss
 from .metrics import psnr_linear_batch
 from .progress import Progress
 
@@ -267,13 +266,14 @@ def fit_to_field(field, source, width: float, iterations: int, seed: int = 0) ->
     rng = np.random.default_rng([seed, 3])
     lo, size = np.asarray(field.box.lo), field.box.size
     pts = lo + rng.uniform(size=(200_000, 3)) * size
-    grad = source.eval(pts)[1]
+    eta, grad = source.eval(pts)
     band = pts[np.linalg.norm(grad, axis=1) > 1e-3]
     if len(band):
         jitter = rng.normal(scale=width / 2, size=(200_000, 3))
         more = np.clip(band[rng.integers(0, len(band), 200_000)] + jitter, lo, lo + size)
+        eta_more, grad_more = source.eval(more)
         pts = np.concatenate([pts, more])
-    eta, grad = source.eval(pts)
+        eta, grad = np.concatenate([eta, eta_more]), np.concatenate([grad, grad_more])
     return field.fit_values(pts, eta, grad, scale=width, iterations=iterations, seed=seed)
 
 
@@ -302,6 +302,7 @@ class Fit:
         self.it = 0
         self._masks = None
         self._marked = None
+        self._marked_in_pool = None
         self._val_idx = None
         self._hulls: dict = {}
         self._free = None
@@ -380,7 +381,6 @@ class Fit:
         field = self._make_field(0)
         rms = fit_to_field(field, source, self.cfg.width, self.cfg.distil_iterations, self.cfg.seed)
         self._bind(field)
-        self.adam = Adam(len(self.params), self._groups())
         return rms
 
     # --- the visual hull: where the object can be -------------------------------------------
@@ -641,8 +641,8 @@ class Fit:
         except Exception as exc:  # noqa: BLE001 - any damage is the user's to know about
             raise ClrefractError(f"{path}: cannot read checkpoint ({exc})") from None
         res = int(shape[0]) if self.cfg.field in GRID_FIELDS else 0
-        self.box = _run_box(self.out)
-        self.eta_max = float(_run_meta(self.out).get("eta_max", self.eta_max))
+        self.box, eta_max = _run_meta(self.out)
+        self.eta_max = float(eta_max or self.eta_max)
         self._bind(self._make_field(res) if res else self._make_field(0))
         if len(params) != len(self.params):
             raise ClrefractError(
@@ -670,10 +670,18 @@ class Fit:
             )
         return self._marked
 
+    def _marked_pool(self) -> np.ndarray:
+        """The marked rays that gradients may use (not the held-out views')."""
+        if self._marked_in_pool is None:
+            self._marked_in_pool = np.intersect1d(
+                self._marked_rays(), self._pool, assume_unique=True
+            )
+        return self._marked_in_pool
+
     def _mask_batch(self, tag: int) -> np.ndarray:
         """A fixed batch of the training rays that the masks (grown by 2 pixels) mark: only
         they can see the object, so they carry the whole signal of a start search."""
-        marked = np.intersect1d(self._marked_rays(), self._pool, assume_unique=True)
+        marked = self._marked_pool()
         if len(marked) < 16:
             return self._fixed_batch(tag)
         rng = np.random.default_rng([self.cfg.seed, tag])
@@ -689,16 +697,12 @@ class Fit:
     def _forward_loss(self, idx: np.ndarray) -> float:
         """Loss of the current field on training rays idx, against the sharp environment
         (forward pass only)."""
-        from .tracer import Status
+        from .gradient import traced_loss
 
         r = self.engine.tracer.trace(self.origins[idx], self.dirs[idx])
-        dark = (r.status == Status.TRAPPED) | (r.status == Status.NONFINITE)
-        ok = ((r.status == Status.EXITED) | dark) * self.weights[idx]
-        return float(
-            photometric_loss(
-                self._env_full, r.direction, self.rgb[idx], ok, self.cfg.loss, dark=dark
-            )[0]
-        )
+        return traced_loss(
+            self._env_full, r.status, r.direction, self.rgb[idx], self.weights[idx], self.cfg.loss
+        )[0]
 
     def validation_loss(self) -> float:
         """Loss on a fixed batch of the held-out views' rays, most through their masks
@@ -737,9 +741,7 @@ class Fit:
 
     def step(self) -> dict:
         self._maybe_regrid()
-        marked = None
-        if self.cfg.mask_share > 0:
-            marked = np.intersect1d(self._marked_rays(), self._pool, assume_unique=True)
+        marked = self._marked_pool() if self.cfg.mask_share > 0 else None
         idx = batch_indices(self.cfg, self.it, self._pool, marked)
         t0 = time.perf_counter()
         targets = self.targets_at(self.it)
@@ -910,19 +912,15 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
     return fit
 
 
-def _run_meta(run: Path) -> dict:
-    try:
-        meta = json.loads((Path(run) / "run.json").read_text())
-        meta["box"]  # noqa: B018 - every run.json has one
-        return meta
-    except Exception as exc:  # noqa: BLE001 - any damage is the user's to know about
-        raise ClrefractError(f"{run}: cannot read the run's box from run.json ({exc})") from None
-
-
-def _run_box(run: Path):
+def _run_meta(run: Path):
+    """The field's box and eta_max (None in runs that predate it) that run.json records."""
     from .fields.base import Box
 
-    return Box.from_dict(_run_meta(run)["box"])
+    try:
+        meta = json.loads((Path(run) / "run.json").read_text())
+        return Box.from_dict(meta["box"]), meta.get("eta_max")
+    except Exception as exc:  # noqa: BLE001 - any damage is the user's to know about
+        raise ClrefractError(f"{run}: cannot read the run's box from run.json ({exc})") from None
 
 
 def run_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stream=None) -> dict:

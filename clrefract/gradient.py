@@ -17,7 +17,7 @@ from .errors import ClrefractError
 from .fields.base import Box, Field
 from .loss import photometric_loss
 from .runtime import Runtime
-from .tracer import InOut, Out, Status, Tracer
+from .tracer import InOut, Out, Status, Tracer, renders_black
 
 
 @dataclass
@@ -40,6 +40,17 @@ def box_entry(box: Box, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         t2 = (np.asarray(box.hi) - origins) / d
     tmin = np.nan_to_num(np.minimum(t1, t2), nan=-np.inf).max(axis=1)
     return origins + np.maximum(tmin, 0)[:, None] * d
+
+
+def traced_loss(env, status, velocity, targets, weights=None, space="srgb"):
+    """The photometric loss of traced rays as they render: exited rays by the environment
+    along their exit velocity, trapped and non-finite ones black (no adjoint), missed rays
+    not at all. Returns (loss, dJ/dv, radiance)."""
+    dark = renders_black(status)
+    weight = ((status == Status.EXITED) | dark).astype(float)
+    if weights is not None:
+        weight = weight * np.asarray(weights)
+    return photometric_loss(env, velocity, targets, weight=weight, space=space, dark=dark)
 
 
 def _adjoint_group(items: int, lanes: int) -> int | None:
@@ -159,13 +170,7 @@ class GradientEngine:
             status[idx] = st[:m]
             steps += int(sp[:m].sum())
         exited = status == Status.EXITED
-        dark = (status == Status.TRAPPED) | (status == Status.NONFINITE)
-        counted = exited | dark
-        weight = counted.astype(float) if weights is None else counted * np.asarray(weights)
-        loss, mu, rad = photometric_loss(
-            env, vel, targets, weight=weight, space=self.loss_space, dark=dark
-        )
-        mu[~exited] = 0.0
+        loss, mu, rad = traced_loss(env, status, vel, targets, weights, self.loss_space)
 
         n_par = len(self.field.data())
         jobs = []

@@ -8,7 +8,7 @@ import numpy as np
 
 from .cameras import Camera
 from .envmap import EnvMap
-from .tracer import Status, Tracer
+from .tracer import Status, Tracer, renders_black
 
 
 @dataclass
@@ -29,8 +29,7 @@ def render_camera(
     for s in range(0, len(origins), chunk):
         res = tracer.trace(origins[s : s + chunk], dirs[s : s + chunk])
         rad = envmap.lookup(res.direction)
-        bad = (res.status == Status.TRAPPED) | (res.status == Status.NONFINITE)
-        rad[bad] = 0.0
+        rad[renders_black(res.status)] = 0.0
         out[s : s + chunk] = rad
         status[s : s + chunk] = res.status
         steps += int(res.steps.sum())

@@ -38,6 +38,11 @@ class Status(IntEnum):
     NONFINITE = 3
 
 
+def renders_black(status: np.ndarray) -> np.ndarray:
+    """Rays that no light reaches the camera along: trapped or non-finite."""
+    return (status == Status.TRAPPED) | (status == Status.NONFINITE)
+
+
 @dataclass
 class TraceResult:
     position: np.ndarray  # (n, 3) exit point on the box, or the origin for missed rays
