@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from .fields.analytic import Luneburg
-from .tracer import Tracer
+from .tracer import EVALS_PER_STEP, Tracer
 
 
 def luneburg_bundle(n: int = 32, radius: float = 20.0, max_b: float = 0.9, seed: int = 0):
@@ -34,7 +34,7 @@ def luneburg_exit_errors(
 ) -> dict:
     """Largest |d - d_exact| over the bundle, and the field evaluations per ray, per step."""
     o, d, want = luneburg_bundle(n, radius)
-    evals = {"rkn4": 3, "rk4": 4, "euler": 1}[integrator]
+    evals = EVALS_PER_STEP[integrator]
     errors, work = [], []
     for h in steps:
         tr = Tracer(

@@ -233,8 +233,12 @@ def load_cameras(root: Path, scene: Scene) -> tuple[list[Camera], list[Camera]]:
     train = load_transforms(root / scene.train)
     if scene.test != scene.train:
         return train, load_transforms(root / scene.test)
-    k = scene.holdout_every
-    return [c for i, c in enumerate(train) if i % k], train[::k]
+    return holdout_split(train, scene.holdout_every)
+
+
+def holdout_split(cams: list[Camera], k: int) -> tuple[list[Camera], list[Camera]]:
+    """(train, test) of one list of cameras: every k-th is a test view, and not trained on."""
+    return [c for i, c in enumerate(cams) if i % k], cams[::k]
 
 
 def frame_suffix(root: Path, cams: list[Camera]) -> str:
@@ -253,7 +257,12 @@ def frame_suffix(root: Path, cams: list[Camera]) -> str:
 
 
 def frame_image_path(root: Path, cam: Camera, suffix: str = ".exr") -> Path:
-    p = Path(root) / cam.file_path
+    return image_path(root, cam.file_path, suffix)
+
+
+def image_path(root: Path, rel: str, suffix: str) -> Path:
+    """An image named relative to root, with `suffix` where it is named without one."""
+    p = Path(root) / rel
     return p if p.suffix.lower() in IMAGE_SUFFIXES else p.with_name(p.name + suffix)
 
 
@@ -329,7 +338,7 @@ class Dataset:
             self.scene.box = box_from_cameras(self.train + self.test, str(self.root))
         self.suffix = self.scene.frames or frame_suffix(self.root, self.train + self.test)
         for cam in self.train:  # before a run folder is touched: the start reads them late
-            if cam.mask_path and not (self.root / cam.mask_path).is_file():
+            if cam.mask_path and not image_path(self.root, cam.mask_path, ".png").is_file():
                 raise ClrefractError(f"{self.root / cam.mask_path}: mask file not found")
         self._weights: dict[str, np.ndarray] = {}
 
@@ -351,7 +360,7 @@ class Dataset:
         """The user's object mask of a frame: its mask_path, else masks/<frame>.png (or any
         image type) in the dataset folder; None without one."""
         if cam.mask_path:
-            return self.root / cam.mask_path
+            return image_path(self.root, cam.mask_path, ".png")
         stem = frame_stem(cam, 0)
         return next(
             (p for s in IMAGE_SUFFIXES if (p := self.root / MASK_DIR / f"{stem}{s}").is_file()),
@@ -466,7 +475,7 @@ def check_dataset(root, notes: list[str] | None = None) -> list[str]:
                 problems.append(f"{where}: camera does not see the box at all")
             if np.all((c > lo) & (c < hi)):
                 problems.append(f"{where}: camera is inside the box")
-            mask = root / cam.mask_path if cam.mask_path else None
+            mask = image_path(root, cam.mask_path, ".png") if cam.mask_path else None
             if mask is not None:
                 try:
                     read_mask(mask, cam)

@@ -27,6 +27,7 @@ from .dataset import (
     box_from_cameras,
     default_margin,
     frame_suffix,
+    holdout_split,
     write_scene,
 )
 from .errors import ClrefractError
@@ -43,8 +44,9 @@ def _layout(src: Path) -> tuple[str, list[Camera], list[Camera]]:
     elif (src / "transforms_train.json").is_file():
         train = load_transforms(src / "transforms_train.json")
         test_file = src / "transforms_test.json"
-        test = load_transforms(test_file) if test_file.is_file() else train[::DEFAULT_HOLDOUT]
-        return "nerf-synthetic", train, test
+        if test_file.is_file():
+            return "nerf-synthetic", train, load_transforms(test_file)
+        return "nerf-synthetic", *holdout_split(train, DEFAULT_HOLDOUT)
     elif (src / "transforms.json").is_file():
         single = "transforms.json"
     elif not src.exists():
@@ -57,9 +59,8 @@ def _layout(src: Path) -> tuple[str, list[Camera], list[Camera]]:
     cams = load_transforms(src / single)
     if len(cams) < 2:
         raise ClrefractError(f"{src / single}: need at least 2 frames, found {len(cams)}")
-    k = DEFAULT_HOLDOUT  # as a dataset folder with only transforms.json splits it
-    train = [c for i, c in enumerate(cams) if i % k]
-    return "instant-ngp", train, cams[::k]
+    # as a dataset folder with only transforms.json splits it
+    return "instant-ngp", *holdout_split(cams, DEFAULT_HOLDOUT)
 
 
 def _scaled(cam: Camera, scale: float) -> Camera:

@@ -201,3 +201,22 @@ def test_user_masks_feed_the_start(rendered, tmp_path):
     iio.imwrite(cap / "masks" / "other.png", np.zeros((5, 5), np.uint8))
     with pytest.raises(ClrefractError, match="other.png: mask is 5x5"):
         Dataset(cap).mask(Dataset(cap).train[1])
+
+
+def test_import_without_test_file_holds_out_and_keeps_mask_names(rendered, tmp_path, capsys):
+    """A NeRF-synthetic capture with no transforms_test.json: every 8th frame becomes a test
+    view and leaves the training set; a mask named without extension loads after import."""
+    cap = _to_capture(rendered, tmp_path / "capture")
+    (cap / "transforms_test.json").unlink()
+    (cap / "masks").mkdir()
+    tj = json.loads((cap / "transforms_train.json").read_text())
+    tj["frames"][1]["mask_path"] = "masks/m1"
+    iio.imwrite(cap / "masks" / "m1.png", np.full((16, 16), 255, np.uint8))
+    (cap / "transforms_train.json").write_text(json.dumps(tj))
+    ds = tmp_path / "ds"
+    assert main(["dataset", "import", str(cap), "--out", str(ds), "--scale", str(UNIT_MM)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert (info["train"], info["test"]) == (7, 1)
+    d = Dataset(ds)
+    assert not {c.name for c in d.train} & {c.name for c in d.test}
+    assert d.mask(d.train[0]).all()  # frame 1 is the first training frame left
