@@ -20,6 +20,7 @@ import sys
 import time
 from pathlib import Path
 
+from . import shards
 from .baselines.methods import METHODS, run_method
 from .errors import ClrefractError
 
@@ -70,20 +71,9 @@ PROTOCOLS: dict[str, dict] = {
 }
 
 
-def parse_shard(text: str) -> tuple[int, int]:
-    try:
-        i, n = (int(x) for x in text.split("/"))
-    except ValueError:
-        raise ClrefractError(f"--shard must be i/n, e.g. 1/4, got {text!r}") from None
-    if not 1 <= i <= n:
-        raise ClrefractError(f"--shard {text}: need 1 <= i <= n")
-    return i, n
-
-
-def jobs(scenes, methods, shard: tuple[int, int] = (1, 1)) -> list[tuple[str, str]]:
-    all_jobs = [(s, m) for s in scenes for m in methods]
-    i, n = shard
-    return all_jobs[i - 1 :: n]
+def jobs(scenes, methods, shard: str = "") -> list[tuple[str, str]]:
+    """The (scene, method) runs of a shard ('i/n', as shards.parse reads it)."""
+    return shards.select([(s, m) for s in scenes for m in methods], shard)
 
 
 def dataset_for(protocol: str, scene: str, data_root: Path) -> Path:
@@ -138,7 +128,7 @@ def run_job(protocol: str, scene: str, method: str, out: Path, data_root: Path, 
 def run_protocol(
     protocol: str,
     out: Path,
-    shard=(1, 1),
+    shard: str = "",
     scenes=SCENES,
     methods=tuple(METHODS),
     data_root: Path | None = None,
@@ -152,7 +142,8 @@ def run_protocol(
     out.mkdir(parents=True, exist_ok=True)
     data_root = data_root or out / "data"
     records = []
-    path = out / f"shard-{shard[0]}-of-{shard[1]}.json"
+    i, n = shards.parse(shard)
+    path = out / f"shard-{i}-of-{n}.json"
     for scene, method in jobs(scenes, methods, shard):
         print(f"table: {protocol} {scene} {method}", file=stream or sys.stderr)
         records.append(run_job(protocol, scene, method, out, data_root, stream))

@@ -5,30 +5,31 @@ import json
 import pytest
 
 from clrefract.errors import ClrefractError
-from clrefract.table import jobs, merge, parse_shard, run_protocol, write_table
+from clrefract.shards import parse
+from clrefract.table import jobs, merge, run_protocol, write_table
 
 
 def test_shards_cover_every_job_once():
     scenes, methods = ("sphere", "prism", "drop"), ("grid", "meridian", "synapse", "vertexnet")
-    parts = [jobs(scenes, methods, (i, 5)) for i in range(1, 6)]
+    parts = [jobs(scenes, methods, f"{i}/5") for i in range(5)]
     flat = [j for p in parts for j in p]
     assert sorted(flat) == sorted(jobs(scenes, methods)) and len(flat) == 12
     with pytest.raises(ClrefractError):
-        parse_shard("3/2")
+        parse("2/2")
 
 
 def test_tiny_protocol_in_two_shards_merges_into_the_table(tmp_path):
     data = tmp_path / "data"
-    for i in (1, 2):
+    for i in (0, 1):
         run_protocol(
             "tiny",
             tmp_path / f"shard{i}",
-            (i, 2),
+            f"{i}/2",
             scenes=["sphere"],
             methods=["meridian", "synapse"],
             data_root=data,
         )
-    records = merge([tmp_path / "shard1", tmp_path / "shard2"])
+    records = merge([tmp_path / "shard0", tmp_path / "shard1"])
     assert [r["method"] for r in records] == ["meridian", "synapse"]
     write_table(records, tmp_path / "table")
     md = (tmp_path / "table" / "table.md").read_text()

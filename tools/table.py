@@ -1,6 +1,6 @@
 """Table 1 of the paper, measured: every method on every scene under a named protocol.
 
-    python tools/table.py run --protocol tiny --out table/tiny [--shard 1/2]
+    python tools/table.py run --protocol tiny --out table/tiny [--shard 0/2]
         [--scenes sphere,prism,drop] [--methods grid,meridian,synapse,vertexnet] [--data DIR]
     python tools/table.py merge table/tiny-a table/tiny-b --out table/tiny
 
@@ -16,8 +16,9 @@ import argparse
 import sys
 from pathlib import Path
 
+from clrefract import shards
 from clrefract.errors import ClrefractError
-from clrefract.table import PROTOCOLS, SCENES, merge, parse_shard, run_protocol, write_table
+from clrefract.table import PROTOCOLS, SCENES, merge, run_protocol, write_table
 
 
 def main(argv=None) -> int:
@@ -28,7 +29,7 @@ def main(argv=None) -> int:
     p = sub.add_parser("run", help="run a protocol (or one shard of it)")
     p.add_argument("--protocol", required=True, choices=list(PROTOCOLS))
     p.add_argument("--out", required=True, help="folder for runs, shard records and the table")
-    p.add_argument("--shard", default="1/1", help="i/n: every n-th run from the i-th")
+    p.add_argument("--shard", default="", help="i/n, 0 <= i < n: every n-th run from the i-th")
     p.add_argument("--scenes", default=",".join(SCENES))
     p.add_argument("--methods", default=",".join(METHODS))
     p.add_argument("--data", help="dataset folder root (default OUT/data)")
@@ -38,7 +39,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     try:
         if args.cmd == "run":
-            shard = parse_shard(args.shard)
+            shard = args.shard
             out = Path(args.out)
             records = run_protocol(
                 args.protocol,
@@ -48,7 +49,7 @@ def main(argv=None) -> int:
                 methods=[m for m in args.methods.split(",") if m],
                 data_root=Path(args.data) if args.data else None,
             )
-            if shard == (1, 1) and records:
+            if shards.parse(shard)[1] == 1 and records:
                 write_table(records, out)
                 print((out / "table.md").read_text())
         else:
