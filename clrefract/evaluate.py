@@ -144,15 +144,12 @@ def _view_figure(path: Path, render: np.ndarray, truth: np.ndarray) -> None:
     write_png(path, panel)
 
 
-def _pts_grid(box, res: int) -> np.ndarray:
-    axes = [np.linspace(box.lo[k], box.hi[k], res) for k in range(3)]
-    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-
-
 def eta_rmse_of(model, truth, box, res: int = 48) -> float:
-    """RMSE of eta against the analytic truth at res^3 nodes over the box."""
-    pts = _pts_grid(box, res)
-    return float(np.sqrt(np.mean((model.eta(pts) - truth.eval(pts)[0]) ** 2)))
+    """RMSE of a model's eta (anything with .eta(points)) against the analytic truth at res^3
+    nodes over the box."""
+    from .report import eta_rmse
+
+    return eta_rmse(None, truth, box, res, eval_fn=lambda pts: (model.eta(pts),))
 
 
 def _plane_points(box, axes: tuple[int, int], res: int) -> np.ndarray:
