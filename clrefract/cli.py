@@ -331,6 +331,38 @@ def _cmd_eval(args) -> int:
     return 0
 
 
+def _names(text: str) -> list[str]:
+    return [n for n in text.split(",") if n]
+
+
+def _cmd_table_run(args) -> int:
+    from . import shards
+    from .table import run_protocol, write_table
+
+    out = Path(args.out)
+    records = run_protocol(
+        args.protocol,
+        out,
+        args.shard,
+        scenes=_names(args.scenes),
+        methods=_names(args.methods),
+        data_root=Path(args.data) if args.data else None,
+    )
+    if shards.parse(args.shard)[1] == 1 and records:
+        write_table(records, out)
+        print((out / "table.md").read_text(), end="")
+    return 0
+
+
+def _cmd_table_merge(args) -> int:
+    from .table import merge, write_table
+
+    out = Path(args.out)
+    write_table(merge([Path(f) for f in args.folders]), out)
+    print((out / "table.md").read_text(), end="")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="clrefract", description=__doc__)
     ap.add_argument(
@@ -478,6 +510,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--views", type=int, default=-1, help="score the first N test views (-1 all)")
     p.add_argument("--no-figures", action="store_true", help="scores only")
     p.set_defaults(func=_cmd_eval)
+
+    tab = sub.add_parser(
+        "table", help="the paper's Table 1: every method on every scene under a protocol"
+    ).add_subparsers(dest="table_command", required=True)
+    p = tab.add_parser("run", help="run a protocol (or one shard of it) and write the table")
+    p.add_argument(
+        "--protocol", required=True, help="tiny (smoke test), quick (128 x 128), standard, full"
+    )
+    p.add_argument("--out", required=True, help="folder for runs, shard records and the table")
+    p.add_argument("--shard", default="", help="i/n, 0 <= i < n: every n-th run from the i-th")
+    p.add_argument("--scenes", default="sphere,prism,drop")
+    p.add_argument("--methods", default="grid,meridian,synapse,vertexnet")
+    p.add_argument("--data", help="dataset folder root (default OUT/data)")
+    p.set_defaults(func=_cmd_table_run)
+    p = tab.add_parser("merge", help="join shard records into the table")
+    p.add_argument("folders", nargs="+", help="folders holding shard-*-of-*.json")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_cmd_table_merge)
     return ap
 
 

@@ -2,7 +2,7 @@
 
 A protocol fixes the datasets (views, image size) and each method's budget. Jobs are the
 (scene, method) pairs in a fixed order; `--shard i/n` takes every n-th of them from the i-th
-(1-based), so machines split a protocol without talking; each shard writes its records to
+(0-based), so machines split a protocol without talking; each shard writes its records to
 shard-i-of-n.json and `merge` joins the shards' records into the table. A job whose run folder
 already holds eval/eval.json is not run again (a shard that stopped can be started again).
 

@@ -1,12 +1,13 @@
-"""tools/table.py's engine: a protocol split into shards, merged into Table 1."""
+"""`clrefract table` (and tools/table.py): a protocol split into shards, merged into Table 1."""
 
 import json
 
 import pytest
 
+from clrefract.cli import main
 from clrefract.errors import ClrefractError
 from clrefract.shards import parse
-from clrefract.table import jobs, merge, run_protocol, write_table
+from clrefract.table import jobs, merge, run_protocol
 
 
 def test_shards_cover_every_job_once():
@@ -20,18 +21,22 @@ def test_shards_cover_every_job_once():
 
 def test_tiny_protocol_in_two_shards_merges_into_the_table(tmp_path):
     data = tmp_path / "data"
-    for i in (0, 1):
-        run_protocol(
-            "tiny",
-            tmp_path / f"shard{i}",
-            f"{i}/2",
-            scenes=["sphere"],
-            methods=["meridian", "synapse"],
-            data_root=data,
-        )
+    run_protocol(
+        "tiny",
+        tmp_path / "shard0",
+        "0/2",
+        scenes=["sphere"],
+        methods=["meridian", "synapse"],
+        data_root=data,
+    )
+    run = ["table", "run", "--protocol", "tiny", "--out", str(tmp_path / "shard1")]
+    run += ["--shard", "1/2", "--scenes", "sphere", "--methods", "meridian,synapse"]
+    assert main([*run, "--data", str(data)]) == 0
     records = merge([tmp_path / "shard0", tmp_path / "shard1"])
     assert [r["method"] for r in records] == ["meridian", "synapse"]
-    write_table(records, tmp_path / "table")
+    shard_folders = [str(tmp_path / "shard0"), str(tmp_path / "shard1")]
+    assert main(["table", "merge", *shard_folders, "--out", str(tmp_path / "table")]) == 0
+    assert main(["table", "run", "--protocol", "huge", "--out", str(tmp_path / "x")]) == 2
     md = (tmp_path / "table" / "table.md").read_text()
     assert "Synapse-Volumetric" in md and "(26.89)" in md  # ours beside the paper's
     csv_lines = (tmp_path / "table" / "table.csv").read_text().splitlines()
