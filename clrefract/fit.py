@@ -90,6 +90,11 @@ class FitConfig:
     # share of each training batch drawn from the refraction masks (grown by 2 pixels), the
     # rest from all pixels; 0: all pixels alike (a mask rarely covers more than a tenth)
     mask_share: float = 0.0
+    # compare training images by blocks of this many pixels a side at first, halving to
+    # single pixels by block_until of the iterations (0 or 1: pixels throughout): the loss of
+    # block means is smooth over image shifts up to a block, and zero at the truth
+    block: int = 0
+    block_until: float = 0.5
     env_blur: float = 0.0  # initial environment blur in pixels, sharpened to 0
     blur_until: float = 0.5  # fraction of the iterations over which the blur goes to 0
     step: float = 0.0  # mm; 0: width/4 for a level set, 1 for the others
@@ -204,6 +209,16 @@ def blur_at(cfg: FitConfig, it: int) -> float:
     return cfg.env_blur * max(0.0, 1.0 - frac)
 
 
+def block_at(cfg: FitConfig, it: int) -> int:
+    """Side of the pixel blocks compared at iteration it: cfg.block halved in equal stages
+    down to 1 by block_until of the iterations."""
+    if cfg.block <= 1:
+        return 1
+    stages = int(math.log2(cfg.block)) + 1
+    frac = it / max(cfg.iterations * cfg.block_until, 1)
+    return max(1, cfg.block >> min(int(frac * stages), stages))
+
+
 def batch_indices(
     cfg: FitConfig, it: int, pool: np.ndarray, marked: np.ndarray | None = None
 ) -> np.ndarray:
@@ -296,6 +311,9 @@ class Fit:
         view = np.repeat(np.arange(len(sizes)), sizes)
         held = np.isin(view, held_out_views(cfg, len(sizes)))
         self._pool, self._held = np.flatnonzero(~held), np.flatnonzero(held)
+        self._view_of = view
+        self._view_start = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        self._view_shape = np.array([(cam.height, cam.width) for cam in self.ds.train])
         self.weights = self.ds.pixel_weights("train")  # 0 where a photograph clipped
         self._env_full = self.ds.envmap()
         self._env_cache: dict[float, tuple] = {}
@@ -739,14 +757,36 @@ class Fit:
             self.field.set_data(self.params)
             self.engine.tracer.upload_field()
 
+    def _blocks(self, anchors: np.ndarray, side: int) -> np.ndarray:
+        """The rays of side x side pixel blocks around the anchor rays, block after block
+        (a block is kept inside its view)."""
+        view = self._view_of[anchors]
+        local = anchors - self._view_start[view]
+        h, w = self._view_shape[view].T
+        y0 = np.clip(local // w - side // 2, 0, np.maximum(h - side, 0))
+        x0 = np.clip(local % w - side // 2, 0, np.maximum(w - side, 0))
+        dy, dx = np.divmod(np.arange(side * side), side)
+        rows = np.minimum(y0[:, None] + dy, h[:, None] - 1)
+        cols = np.minimum(x0[:, None] + dx, w[:, None] - 1)
+        return (self._view_start[view][:, None] + rows * w[:, None] + cols).ravel()
+
     def step(self) -> dict:
         self._maybe_regrid()
         marked = self._marked_pool() if self.cfg.mask_share > 0 else None
         idx = batch_indices(self.cfg, self.it, self._pool, marked)
+        side = block_at(self.cfg, self.it)
+        if side > 1:  # whole blocks, as many as the batch holds (a multiple of the chunks)
+            count = max(len(idx) // (side * side) // self.cfg.chunks, 1) * self.cfg.chunks
+            idx = self._blocks(idx[:count], side)
         t0 = time.perf_counter()
         targets = self.targets_at(self.it)
         r = self.engine.loss_and_grad(
-            self.origins[idx], self.dirs[idx], targets[idx], self.env_at(self.it), self.weights[idx]
+            self.origins[idx],
+            self.dirs[idx],
+            targets[idx],
+            self.env_at(self.it),
+            self.weights[idx],
+            side * side,
         )
         reg, greg = self.field.regularizer(self.params)
         grad = r.grad + self.cfg.reg * greg
@@ -778,6 +818,7 @@ class Fit:
             "seconds": dt,
             "drift_mm": float(r.drift.max()),
             "blur": blur_at(self.cfg, self.it - 1),
+            "block": side,
             "res": int(self.field.values.shape[0]) if self.cfg.field in GRID_FIELDS else 0,
         }
 

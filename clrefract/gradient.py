@@ -42,15 +42,18 @@ def box_entry(box: Box, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     return origins + np.maximum(tmin, 0)[:, None] * d
 
 
-def traced_loss(env, status, velocity, targets, weights=None, space="srgb"):
+def traced_loss(env, status, velocity, targets, weights=None, space="srgb", group=1):
     """The photometric loss of traced rays as they render: exited rays by the environment
     along their exit velocity, trapped and non-finite ones black (no adjoint), missed rays
-    not at all. Returns (loss, dJ/dv, radiance)."""
+    not at all. group: rays compared by blocks (see photometric_loss).
+    Returns (loss, dJ/dv, radiance)."""
     dark = renders_black(status)
     weight = ((status == Status.EXITED) | dark).astype(float)
     if weights is not None:
         weight = weight * np.asarray(weights)
-    return photometric_loss(env, velocity, targets, weight=weight, space=space, dark=dark)
+    return photometric_loss(
+        env, velocity, targets, weight=weight, space=space, dark=dark, group=group
+    )
 
 
 def _adjoint_group(items: int, lanes: int) -> int | None:
@@ -156,8 +159,10 @@ class GradientEngine:
         targets: np.ndarray,
         env: EnvMap,
         weights: np.ndarray | None = None,
+        group: int = 1,
     ) -> GradientResult:
-        """weights: (n,) loss weight of each ray's pixel (0: a clipped photograph pixel)."""
+        """weights: (n,) loss weight of each ray's pixel (0: a clipped photograph pixel);
+        group: rays compared by the mean of each consecutive run of this many."""
         tr = self.tracer
         pending = self.forward(origins, dirs)
         n = len(origins)
@@ -170,7 +175,7 @@ class GradientEngine:
             status[idx] = st[:m]
             steps += int(sp[:m].sum())
         exited = status == Status.EXITED
-        loss, mu, rad = traced_loss(env, status, vel, targets, weights, self.loss_space)
+        loss, mu, rad = traced_loss(env, status, vel, targets, weights, self.loss_space, group)
 
         n_par = len(self.field.data())
         jobs = []

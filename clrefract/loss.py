@@ -63,6 +63,7 @@ def photometric_loss(
     weight: np.ndarray | None = None,
     space: str = "srgb",
     dark: np.ndarray | None = None,
+    group: int = 1,
 ):
     """Mean squared error over rays and channels, and the terminal adjoint dJ/dv (n, 3).
 
@@ -73,6 +74,9 @@ def photometric_loss(
     dark: (n,) rays that render black (trapped or non-finite), as the renderer draws them:
     radiance 0 and no adjoint. Were they left out, trapping a badly rendered ray would
     lower the loss.
+    group: consecutive runs of this many rays (a block of pixels) are compared by their
+    mean: the error of the block-averaged images, which is zero at the truth as the per-ray
+    one is, and smooth over shifts of image content smaller than the block.
     """
     v = np.asarray(velocity, np.float64)
     if dark is not None:
@@ -92,9 +96,18 @@ def photometric_loss(
         resid = (rad - target) * wgt[:, None]
     else:
         raise ValueError(f"loss space must be 'srgb' or 'linear', got {space!r}")
-    n = max(resid.size, 1)
-    loss = float((resid**2).sum() / n)
-    dj_dd = np.einsum("nc,nck->nk", 2 * resid / n, jac)
+    if group > 1:
+        if len(resid) % group:
+            raise ValueError(f"{len(resid)} rays do not split into groups of {group}")
+        mean = resid.reshape(-1, group, 3).mean(axis=1)
+        n = max(mean.size, 1)
+        loss = float((mean**2).sum() / n)
+        dres = np.repeat(2 * mean / (n * group), group, axis=0) * wgt[:, None]
+    else:
+        n = max(resid.size, 1)
+        loss = float((resid**2).sum() / n)
+        dres = 2 * resid / n
+    dj_dd = np.einsum("nc,nck->nk", dres, jac)
     # remove the radial part: dJ/dv = (I - d d^T) / |v| dJ/dd
     dj_dv = (dj_dd - (dj_dd * d).sum(1, keepdims=True) * d) / speed[:, None]
     return loss, dj_dv, rad

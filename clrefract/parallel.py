@@ -186,10 +186,12 @@ class ShardedEngine:
     def __getattr__(self, name):
         return getattr(self.engine, name)
 
-    def loss_and_grad(self, origins, dirs, targets, env, weights=None):
+    def loss_and_grad(self, origins, dirs, targets, env, weights=None, group=1):
         from .gradient import GradientResult
 
         n, c = len(origins), self.chunks
+        if (n // group) % c:
+            raise ValueError(f"{n // group} ray groups do not split into {c} chunks")
         edges = np.arange(c + 1) * n // c  # fixed by the batch alone, not by the ranks
         n_par = len(self.engine.field.data())
         weights = np.ones(n) if weights is None else np.asarray(weights)
@@ -201,7 +203,9 @@ class ShardedEngine:
             self.rays_traced += m
             if m:
                 try:
-                    r = self.engine.loss_and_grad(origins[s], dirs[s], targets[s], env, weights[s])
+                    r = self.engine.loss_and_grad(
+                        origins[s], dirs[s], targets[s], env, weights[s], group
+                    )
                     # each chunk's loss is a mean over its own rays: weight it by its share
                     leaf[:n_par], leaf[n_par] = r.grad * (m / n), r.loss * (m / n)
                     rays.append((j, r.radiance, r.status, r.drift, r.growth, r.steps))

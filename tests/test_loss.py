@@ -68,3 +68,33 @@ def test_dark_rays_cost_their_target_and_carry_no_adjoint():
     assert np.all(rad[dark] == 0) and np.all(g[dark] == 0) and np.all(np.isfinite(g))
     # left out instead (weight 0), the same rays would lower the loss
     assert photometric_loss(env, np.where(dark[:, None], 1.0, v), target, weight=~dark)[0] < loss
+
+
+def test_block_loss_is_the_error_of_block_means_and_its_gradient_matches_fd():
+    """Rays compared by groups of 4: the loss is the squared error of the group means (zero
+    when only the pixels inside a block trade places), and dJ/dv matches central differences."""
+    from clrefract.loss import srgb
+
+    env = _env()
+    rng = np.random.default_rng(4)
+    v = rng.normal(size=(200, 3))
+    target = env.lookup(rng.normal(size=(200, 3))).astype(np.float64)
+    weight = (rng.random(200) > 0.1).astype(float)
+    loss, g, rad = photometric_loss(env, v, target, weight=weight, group=4)
+    diff = (srgb(rad)[0] - srgb(target)[0]) * weight[:, None]
+    assert loss == pytest.approx((diff.reshape(50, 4, 3).mean(1) ** 2).mean(), rel=1e-12)
+    assert loss < photometric_loss(env, v, target, weight=weight)[0]
+    swapped = np.roll(v.reshape(50, 4, 3), 1, axis=1).reshape(200, 3)
+    assert photometric_loss(env, swapped, rad, group=4)[0] < 1e-12
+    assert photometric_loss(env, swapped, rad)[0] > 1e-3
+    hits = 0
+    for _ in range(10):
+        u = rng.normal(size=v.shape) * 1e-7
+        fd = (
+            photometric_loss(env, v + u, target, weight=weight, group=4)[0]
+            - photometric_loss(env, v - u, target, weight=weight, group=4)[0]
+        )
+        hits += abs(fd / 2 - (g * u).sum()) < 1e-3 * abs((g * u).sum()) + 1e-15
+    assert hits >= 9
+    with pytest.raises(ValueError, match="groups of 3"):
+        photometric_loss(env, v, target, group=3)
