@@ -138,8 +138,10 @@ def test_absurd_learning_rate_stops_with_the_best_field(blob_dataset, tmp_path, 
     assert json.loads((run / "results.json").read_text())["stopped"]["field_iteration"] == 0
     renders = tmp_path / "renders"
     render = ["render", "--field", str(run), "--dataset", str(blob_dataset), "--only", "0"]
-    assert main([*render, "--out", str(renders), "--step", "2"]) == 0
+    assert main([*render, "--out", str(renders)]) == 0
     assert len(list(renders.glob("*.exr"))) == 1
+    # without --step, at the run's own step (the grid's suggested step is 0.5 mm)
+    assert json.loads((renders / "render.json").read_text())["step"] == 2.0
     # the way on that the message names: a sane rate in the run's config, then --resume
     toml = run / "config.toml"
     toml.write_text(toml.read_text().replace("lr = 10.0", "lr = 0.003"))
