@@ -1,6 +1,6 @@
 """clrefract: recover index-of-refraction fields from photographs through curved rays.
 
-Commands: devices, render, dataset make, dataset import, dataset check, fit, eval."""
+Commands: devices, render, dataset make, dataset import, dataset check, fit, eval, bench."""
 
 from __future__ import annotations
 
@@ -26,7 +26,8 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
         "--step",
         type=float,
         default=None,
-        help="integrator step in mm of optical path (default: what the field needs, at most 0.5)",
+        help="integrator step in mm of optical path (default: a fit run's own step, else what "
+        "the field's finest feature needs, at most 0.5)",
     )
     g.add_argument("--integrator", default="rkn4", choices=["rkn4", "rk4", "euler"])
     g.add_argument("--precision", default="float32", choices=["float32", "float64"])
@@ -135,7 +136,8 @@ def _cmd_render(args) -> int:
     else:
         envmap = EnvMap.procedural(seed=args.seed)
     runtime = Runtime(args.device)
-    args.step = field.suggested_step if args.step is None else args.step
+    if args.step is None:
+        args.step = _run_step(Path(args.field)) or field.suggested_step
     tracer = Tracer(
         field,
         box,
@@ -185,6 +187,16 @@ def _cmd_render(args) -> int:
         )
     print(f"wrote {len(cameras)} view(s) to {out}", file=sys.stderr)
     return 0
+
+
+def _run_step(run: Path) -> float | None:
+    """The step a fit run folder was fitted (and is scored) with: a fitted field renders as
+    it was trained (a hash grid fitted at w/4 renders 5 dB worse at twice that)."""
+    if not (run.is_dir() and (run / "config.toml").is_file()):
+        return None
+    from .fit import load_config
+
+    return load_config(run / "config.toml", {}).step_mm
 
 
 def _field_for_render(spec: str, box):
@@ -273,6 +285,7 @@ def _cmd_fit(args) -> int:
             "lr_phi",
             "lr_index",
             "adjoint_growth_max",
+            "diverge_factor",
             "width",
             "reg",
             "step",
@@ -360,6 +373,36 @@ def _cmd_table_merge(args) -> int:
     out = Path(args.out)
     write_table(merge([Path(f) for f in args.folders]), out)
     print((out / "table.md").read_text(), end="")
+    return 0
+
+
+def _cmd_bench(args) -> int:
+    from dataclasses import replace
+
+    from .imageio import ensure_out_dir
+    from .limits import check_count
+    from .runtime import Runtime
+    from .tradeoff import SIZES, markdown, run_study, write_study
+
+    size = SIZES["quick" if args.quick else "full"]
+    if args.rays is not None:
+        size = replace(size, rays=check_count("--rays", args.rays, 1, 1 << 22))
+    if args.image is not None:
+        size = replace(size, image=check_count("--image", args.image, 1, 4096))
+    if args.scenes:
+        size = replace(size, scenes=tuple(args.scenes))
+    if args.precision:
+        size = replace(size, precisions=tuple(args.precision))
+    if args.integrators:
+        fixed = {k: v for k, v in size.fixed.items() if k in args.integrators}
+        size = replace(size, fixed=fixed, tols=size.tols if "dopri5" in args.integrators else [])
+    out = ensure_out_dir(Path(args.out), "bench folder")
+    runtime = Runtime(args.device)
+    print(f"bench on {runtime.info.name}: {len(size.scenes)} scene(s)", file=sys.stderr)
+    rows = run_study(size, runtime, log=lambda line: print(line, file=sys.stderr, flush=True))
+    paths = write_study(rows, out)
+    print(markdown(rows), end="")
+    print(f"wrote {', '.join(str(p) for p in paths.values())}", file=sys.stderr)
     return 0
 
 
@@ -490,6 +533,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         help="stop a ray's backward pass once its adjoint grew by this factor (0: never)",
     )
+    p.add_argument(
+        "--diverge-factor",
+        type=float,
+        help="stop once the held-out loss exceeds its best by this factor, keeping the best "
+        "field (default 5; 0: never); a non-finite loss, gradient or parameter always stops",
+    )
     p.add_argument("--lr-table", type=float, help="learning rate of hash tables")
     p.add_argument("--lr-mlp", type=float, help="learning rate of the MLP")
     p.add_argument("--reg", type=float, help="smoothness regulariser weight")
@@ -528,6 +577,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("folders", nargs="+", help="folders holding shard-*-of-*.json")
     p.add_argument("--out", required=True)
     p.set_defaults(func=_cmd_table_merge)
+
+    from .tradeoff import SCENES
+
+    p = sub.add_parser(
+        "bench",
+        help="the speed/accuracy trade: exit-direction error, image PSNR, gradient error, "
+        "device memory and throughput per integrator, precision and step",
+    )
+    p.add_argument("--out", default="bench_results/tradeoff", help="folder for the results")
+    p.add_argument("--quick", action="store_true", help="the small study (about a minute)")
+    p.add_argument("--scenes", nargs="+", choices=list(SCENES), help="default: the size's")
+    p.add_argument("--precision", nargs="+", choices=["float32", "float64"])
+    p.add_argument(
+        "--integrators", nargs="+", choices=["rkn4", "rk4", "euler", "dopri5"], help="a subset"
+    )
+    p.add_argument("--rays", type=int, help="rays in the bundle (quick 256, full 2048)")
+    p.add_argument("--image", type=int, help="pixels across the PSNR view (quick 32, full 64)")
+    p.add_argument("--device", default=None, help="OpenCL device, as for render")
+    p.set_defaults(func=_cmd_bench)
     return ap
 
 

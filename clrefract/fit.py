@@ -121,6 +121,10 @@ class FitConfig:
     # fewer than five training views each: validate on training rays): what generalises to
     # new views, not what fits the training rays best
     val_views: int = 8
+    # the run stops, keeping its best parameters, once the held-out loss exceeds its best by
+    # this factor (0: never): a learning rate 2000x the default took a voxel fit's to 6.5x
+    # within 5 iterations, and healthy fits stay near their best
+    diverge_factor: float = 5.0
     test_views: int = -1  # test views rendered at the end (-1: all)
 
     @property
@@ -142,6 +146,10 @@ class FitConfig:
             raise ClrefractError(f"step must be positive (or 0: automatic), got {self.step}")
         if not (self.width > 0 and math.isfinite(self.width)):
             raise ClrefractError(f"width must be positive, got {self.width}")
+        if not (self.diverge_factor == 0 or 1 < self.diverge_factor < math.inf):
+            raise ClrefractError(
+                f"diverge_factor must be above 1 (or 0: never), got {self.diverge_factor}"
+            )
         if not (0 <= self.index_headroom < 10):
             raise ClrefractError(f"index_headroom must be in [0, 10), got {self.index_headroom}")
         if self.field == "levelset" and self.init != "hull":
@@ -330,6 +338,7 @@ class Fit:
         self.engine = None
         self.adam = None
         self.params = None
+        self.stopped: dict | None = None  # why a diverged run stopped (results.json)
 
     # --- field and optimiser -------------------------------------------------------------
     def _make_field(self, res: int):
@@ -797,7 +806,11 @@ class Fit:
         if not np.all(np.isfinite(grad)):
             raise FloatingPointError("non-finite gradient")
         decay = self.cfg.lr_final ** (self.it / self.cfg.iterations)
+        before = self.params.copy()
         self.adam.step(self.params, grad, lr_scale=decay)
+        if not np.all(np.isfinite(self.params)):
+            self.params[:] = before  # the field stays as the iteration found it
+            raise FloatingPointError("non-finite parameters")
         if self.cfg.field == "voxel":  # keep node values physical: 1 <= eta <= eta_max
             np.clip(self.params, 1.0, self.eta_max, out=self.params)
             if self._free is not None:
@@ -845,6 +858,9 @@ class Fit:
                         m["val_loss"] = val
                     mf.write(json.dumps(m) + "\n")
                     mf.flush()
+                    blown = self._blown_up(val)
+                    if blown:
+                        return self._stop_diverged(blown, self.it)
                     bar.update(
                         1, loss=m["loss"], psnr=round(m["psnr"], 2), rays_s=int(m["rays_per_s"])
                     )
@@ -858,11 +874,7 @@ class Fit:
                 "intact: continue with --resume"
             ) from None
         except FloatingPointError as exc:
-            raise ClrefractError(
-                f"{exc} at iteration {self.it + 1}; stopped, the last good checkpoint is "
-                f"{self.checkpoint_path} (iteration {last_ckpt}). Try a smaller learning "
-                "rate or step."
-            ) from None
+            return self._stop_diverged(str(exc), self.it + 1)
         self.save_checkpoint()
         self.use_best()
         self.field.save(self.out / "field.npz")
@@ -872,6 +884,51 @@ class Fit:
         from .report import write_fit_report
 
         return write_fit_report(self)
+
+    def _blown_up(self, val: float | None) -> str:
+        """Why the held-out loss says the fit diverged ("" if it does not)."""
+        if val is None:
+            return ""
+        if not math.isfinite(val):
+            return "non-finite held-out loss"
+        best, factor = self.best[0], self.cfg.diverge_factor
+        if factor and math.isfinite(best) and val > factor * best:
+            return f"held-out loss {val:.4g} is {val / best:.1f}x its best {best:.4g}"
+        return ""
+
+    def _stop_diverged(self, reason: str, at: int):
+        """End a diverged run with what it had before: the best validated parameters (else
+        the last finite ones) as field.npz, the checkpoint rolled back to their iteration
+        with fresh Adam moments (the old ones carry the blow-up), and results.json; then
+        raise FitDiverged with one line saying why and what was kept."""
+        _, best_it, best_params = self.best
+        if best_params is not None and len(best_params) == len(self.params):
+            self.params[:] = best_params
+            self.it, kept = best_it, "the best on held-out views"
+        else:
+            kept = "the last finite parameters"
+        self.field.set_data(self.params)
+        self.engine.tracer.upload_field()
+        self.adam = Adam(len(self.params), self._groups())
+        self.stopped = {"reason": reason, "at_iteration": at, "field_iteration": self.it}
+        self.save_checkpoint()
+        self.field.save(self.out / "field.npz")
+        result = self.finish()
+        raise FitDiverged(
+            f"fit diverged at iteration {at} ({reason}); {self.out} holds the field of "
+            f"iteration {self.it} ({kept}) and its checkpoint: lower the learning rate in "
+            f"{self.out / 'config.toml'} and --resume",
+            result,
+        )
+
+
+class FitDiverged(ClrefractError):
+    """A fit stopped because its numbers blew up; its run folder holds the last good state
+    (field.npz, checkpoint.npz, results.json with "stopped")."""
+
+    def __init__(self, message: str, result: dict):
+        super().__init__(message)
+        self.result = result
 
 
 class _StopOnInterrupt:

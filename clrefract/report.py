@@ -222,6 +222,8 @@ def write_fit_report(fit) -> dict:
         "best_iteration": fit.best[1],
         "best_val_loss": float(fit.best[0]) if np.isfinite(fit.best[0]) else None,
     }
+    if getattr(fit, "stopped", None):
+        result["stopped"] = fit.stopped
     rows = _guarded(result, "metrics.jsonl", lambda: _metric_rows(out / "metrics.jsonl")) or []
     result["train_seconds"] = float(sum(r.get("seconds", 0.0) for r in rows))
     result["final_loss"] = rows[-1].get("loss") if rows else None

@@ -163,6 +163,7 @@ class Tracer:
         cl = self.runtime.cl
         self._no_ckpt = cl.Buffer(self.runtime.context, cl.mem_flags.READ_WRITE, 64)
         self._skip_args = []
+        self.launch_bytes = 0  # device buffers the last launch used (bench's memory column)
         if self.skip_empty:
             mf = cl.mem_flags
             occ = np.ascontiguousarray(self.occupancy.reshape(-1), np.int32)
@@ -250,6 +251,9 @@ class Tracer:
                 b = a
             bufs.append(b)
         kernel(q, (n_items,), None if local is None else (local,), self._fp, self._fd, *bufs)
+        self.launch_bytes = sum(
+            b.size for b in (self._fp, self._fd, *bufs) if isinstance(b, cl.MemoryObject)
+        )
         for a, b in back:
             cl.enqueue_copy(q, a, b, is_blocking=False)
         return q

@@ -108,9 +108,46 @@ def test_non_finite_gradient_stops_with_a_clear_message(blob_dataset, tmp_path, 
         return real(self)
 
     monkeypatch.setattr(fitmod.Fit, "step", poisoned)
-    with pytest.raises(ClrefractError, match="non-finite gradient at iteration 15.*iteration 10"):
+    # no validation before it (the coarse grid's iterations are not candidates): the run
+    # keeps the parameters that iteration 15 started from
+    with pytest.raises(
+        fitmod.FitDiverged,
+        match="diverged at iteration 15 .non-finite gradient.*field of iteration 14",
+    ):
         run_fit(blob_dataset, tmp_path / "nan", _cfg(iterations=30))
-    assert int(np.load(tmp_path / "nan" / "checkpoint.npz")["iteration"]) == 10
+    assert int(np.load(tmp_path / "nan" / "checkpoint.npz")["iteration"]) == 14
+    stopped = json.loads((tmp_path / "nan" / "results.json").read_text())["stopped"]
+    assert stopped == {"reason": "non-finite gradient", "at_iteration": 15, "field_iteration": 14}
+
+
+def test_absurd_learning_rate_stops_with_the_best_field(blob_dataset, tmp_path, capsys):
+    from clrefract.fields import load_field_file
+
+    run, cfg = tmp_path / "run", tmp_path / "fit.toml"
+    cfg.write_text(
+        "iterations = 20\nres = 8\nstep = 2.0\ninit = 'empty'\nbatch = 4096\n"
+        "validate_every = 5\ncheckpoint_every = 10\ntest_views = 1\nlr = 10.0\n"
+    )
+    assert main(["fit", str(blob_dataset), "--out", str(run), "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    # 2000x the default rate: the held-out loss is 6.5x its best (the start) at iteration 5
+    assert "fit diverged at iteration 5 (held-out loss" in err, err
+    assert "holds the field of iteration 0" in err, err
+    saved = load_field_file(run / "field.npz")
+    assert np.all(np.isfinite(saved.values)) and np.all(saved.values == 1.0)  # the empty start
+    assert json.loads((run / "results.json").read_text())["stopped"]["field_iteration"] == 0
+    renders = tmp_path / "renders"
+    render = ["render", "--field", str(run), "--dataset", str(blob_dataset), "--only", "0"]
+    assert main([*render, "--out", str(renders)]) == 0
+    assert len(list(renders.glob("*.exr"))) == 1
+    # without --step, at the run's own step (the grid's suggested step is 0.5 mm)
+    assert json.loads((renders / "render.json").read_text())["step"] == 2.0
+    # the way on that the message names: a sane rate in the run's config, then --resume
+    toml = run / "config.toml"
+    toml.write_text(toml.read_text().replace("lr = 10.0", "lr = 0.003"))
+    assert main(["fit", str(blob_dataset), "--out", str(run), "--resume"]) == 0
+    assert int(np.load(run / "checkpoint.npz")["iteration"]) == 20
+    assert "stopped" not in json.loads((run / "results.json").read_text())
 
 
 def test_fit_cli_refuses_to_overwrite_and_renders_the_run(blob_dataset, tmp_path, capsys):
