@@ -273,6 +273,7 @@ def _cmd_fit(args) -> int:
             "lr_phi",
             "lr_index",
             "adjoint_growth_max",
+            "adjoint",
             "width",
             "reg",
             "step",
@@ -457,6 +458,12 @@ def build_parser() -> argparse.ArgumentParser:
         dest="adjoint_growth_max",
         type=float,
         help="stop a ray's backward pass once its adjoint grew by this factor (0: never)",
+    )
+    p.add_argument(
+        "--adjoint",
+        choices=["continuous", "discrete"],
+        help="backward pass: adjoint-state ODE (default) or the exact discrete adjoint of "
+        "each step, replayed from checkpoints",
     )
     p.add_argument("--lr-table", type=float, help="learning rate of hash tables")
     p.add_argument("--lr-mlp", type=float, help="learning rate of the MLP")
