@@ -143,8 +143,9 @@ def test_fit_config_takes_the_adjoint_mode():
 
 def test_hashgrid_discrete_adjoint_matches_finite_differences():
     """Hash grid + MLP (the shared MLP weights summed per work-item): table and MLP
-    directions. eps 1e-8: at 1e-7 the central difference itself errs by ~1e-6 here (the
-    loss is less smooth than the voxel scene's); measured 3e-9."""
+    directions. Measured 1.4e-9 and 1e-10 at eps 1e-6 (the continuous adjoint: 1e-2 at this
+    step); the central difference's own error grows as 1/eps below (4e-7 at 1e-8) and as
+    eps above (8e-5 at 1e-5)."""
     from test_adjoint_hashgrid import SMALL, hg_scene, lively
 
     from clrefract.fields.hashgrid import HashGridConfig
@@ -158,7 +159,7 @@ def test_hashgrid_discrete_adjoint_matches_finite_differences():
     for sl in (field.table_slice, field.mlp_slice):
         u = np.zeros_like(p0)
         u[sl] = rng.normal(size=sl.stop - sl.start)
-        errs = directional_errors(eng, o, d, env, target, res.grad, p0, [u], 1e-8)
+        errs = directional_errors(eng, o, d, env, target, res.grad, p0, [u], 1e-6)
         assert errs.max() < EXACT, (sl, errs)
     assert res.drift.max() < 1e-10
 
@@ -209,3 +210,27 @@ def test_tiny_fit_with_the_discrete_adjoint(tmp_path):
     losses = [json.loads(ln)["loss"] for ln in lines]
     assert np.mean(losses[-3:]) < 0.7 * np.mean(losses[:2]), losses
     assert 'adjoint = "discrete"' in (run / "config.toml").read_text()
+
+
+def test_levelset_discrete_adjoint_matches_finite_differences():
+    """A level set (B-spline distances and one shared index n, summed per work-item):
+    distance and index directions; measured 4e-10 and 3e-10 at eps 1e-6."""
+    from fdcheck import smooth_env
+    from test_levelset import BOX as LBOX
+    from test_levelset import ellipsoid
+
+    f = ellipsoid()
+    rng = np.random.default_rng(3)
+    n = 60
+    o = np.column_stack([rng.uniform(-18, 18, (n, 2)), np.full(n, -150.0)])
+    d = np.column_stack([rng.normal(0, 0.03, (n, 2)), np.ones(n)])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    env = smooth_env()
+    target = env.lookup(d + rng.normal(0, 0.02, d.shape)).astype(np.float64)
+    eng = GradientEngine(f, LBOX, step=1.0, precision="float64", lanes=4, adjoint="discrete")
+    res = eng.loss_and_grad(o, d, target, env)
+    p0 = f.data().copy()
+    dirs = [np.append(rng.normal(size=f.phi.size), 0.0), np.eye(len(p0))[-1]]
+    errs = directional_errors(eng, o, d, env, target, res.grad, p0, dirs, 1e-6)
+    assert errs.max() < EXACT, errs
+    assert res.grad[-1] != 0
