@@ -5,7 +5,7 @@ Two backward passes: "continuous" (the default) integrates the adjoint-state equ
 backwards beside a re-integrated ray, in constant memory, and matches the renderer's
 gradient up to the integrator's error; "discrete" replays each segment of K steps from
 forward checkpoints and reverses every RKN4 step exactly (adjoint_discrete.cl): the
-renderer's own gradient to rounding, for K states of scratch and max_steps / K
+renderer's own gradient to rounding, for a scratch of K steps and max_steps / K
 checkpoints per ray, and 3 more field evaluations per step than the continuous pass.
 
 Each queue traces its share of the rays and accumulates into its own gradient buffer; the
@@ -45,8 +45,9 @@ ADJOINTS = ("continuous", "discrete")
 
 
 def discrete_segment(max_steps: int) -> int:
-    """The default segment K of the discrete adjoint: ceil(sqrt(max_steps)) minimises the
-    checkpoints (max_steps / K states) plus the scratch (K states) per ray."""
+    """The default segment K of the discrete adjoint: ceil(sqrt(max_steps)), about the K
+    that minimises the checkpoints (max_steps / K states) plus the scratch (K steps) per
+    ray."""
     return max(1, math.isqrt(max(max_steps - 1, 0)) + 1)
 
 
