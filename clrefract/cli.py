@@ -286,6 +286,7 @@ def _cmd_fit(args) -> int:
             "lr_index",
             "adjoint_growth_max",
             "diverge_factor",
+            "adjoint",
             "width",
             "reg",
             "step",
@@ -538,6 +539,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         help="stop once the held-out loss exceeds its best by this factor, keeping the best "
         "field (default 5; 0: never); a non-finite loss, gradient or parameter always stops",
+    )
+    p.add_argument(
+        "--adjoint",
+        choices=["continuous", "discrete"],
+        help="backward pass: adjoint-state ODE (default) or the exact discrete adjoint of "
+        "each step, replayed from checkpoints",
     )
     p.add_argument("--lr-table", type=float, help="learning rate of hash tables")
     p.add_argument("--lr-mlp", type=float, help="learning rate of the MLP")

@@ -104,6 +104,10 @@ class FitConfig:
     # a ray's backward pass stops once its adjoint grew by this factor (0: never): rays that
     # wander inside an object have exponentially growing, useless gradients
     adjoint_growth_max: float = 30.0
+    # backward pass: "continuous" (adjoint-state ODE, gradient up to the integrator's error)
+    # or "discrete" (each step reversed exactly from the checkpoints above: the renderer's
+    # own gradient, for about twice the field evaluations and K more states per ray)
+    adjoint: str = "continuous"
     precision: str = "float32"
     loss: str = "srgb"
     queues: int = 1
@@ -156,6 +160,16 @@ class FitConfig:
             raise ClrefractError("a level-set fit starts from the visual hull (init = 'hull')")
         if self.init not in ("hull", "empty"):
             raise ClrefractError(f"init must be 'hull' or 'empty', got {self.init!r}")
+        from .gradient import ADJOINTS
+
+        if self.adjoint not in ADJOINTS:
+            raise ClrefractError(
+                f"adjoint must be one of {', '.join(ADJOINTS)}, got {self.adjoint!r}"
+            )
+        if self.backward_checkpoints < 0:
+            raise ClrefractError(
+                f"backward_checkpoints must be >= 0, got {self.backward_checkpoints}"
+            )
         if self.interp not in ("smoothstep", "trilinear", "bspline"):
             raise ClrefractError(
                 f"interp must be 'bspline', 'smoothstep' or 'trilinear', got {self.interp!r}"
@@ -361,6 +375,7 @@ class Fit:
             loss_space=self.cfg.loss,
             checkpoint_every=self.cfg.backward_checkpoints,
             growth_max=self.cfg.adjoint_growth_max,
+            adjoint=self.cfg.adjoint,
         )
         self.engine = shard(self.engine, self.cfg.chunks)  # split over MPI ranks, if any
         self._update_free()

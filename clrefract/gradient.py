@@ -1,6 +1,13 @@
 """Loss and parameter gradient of a parametric field: forward trace, photometric loss,
 adjoint backward pass, spread over several command queues.
 
+Two backward passes: "continuous" (the default) integrates the adjoint-state equations
+backwards beside a re-integrated ray, in constant memory, and matches the renderer's
+gradient up to the integrator's error; "discrete" replays each segment of K steps from
+forward checkpoints and reverses every RKN4 step exactly (adjoint_discrete.cl): the
+renderer's own gradient to rounding, for a scratch of K steps and max_steps / K
+checkpoints per ray, and 3 more field evaluations per step than the continuous pass.
+
 Each queue traces its share of the rays and accumulates into its own gradient buffer; the
 host sums the buffers in queue order, so the result does not depend on the number of queues
 beyond rounding.
@@ -8,6 +15,7 @@ beyond rounding.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +23,7 @@ import numpy as np
 from .envmap import EnvMap
 from .errors import ClrefractError
 from .fields.base import Box, Field
+from .limits import check_device_buffer
 from .loss import photometric_loss
 from .runtime import Runtime
 from .tracer import InOut, Out, Status, Tracer, renders_black
@@ -27,9 +36,34 @@ class GradientResult:
     radiance: np.ndarray  # (n, 3) rendered
     status: np.ndarray  # (n,)
     drift: np.ndarray  # (n,) mm the re-integrated ray strayed: at the entry point, or at the
-    # forward checkpoints where it restarted
+    # forward checkpoints where it restarted (discrete: the replay's rounding, ~0)
     steps: int
     growth: np.ndarray | None = None  # (n,) max |mu| / |mu(T)| along each ray's backward pass
+
+
+ADJOINTS = ("continuous", "discrete")
+
+
+def discrete_segment(max_steps: int) -> int:
+    """The default segment K of the discrete adjoint: ceil(sqrt(max_steps)), about the K
+    that minimises the checkpoints (max_steps / K states) plus the scratch (K steps) per
+    ray."""
+    return max(1, math.isqrt(max(max_steps - 1, 0)) + 1)
+
+
+# reals per replayed step in the discrete adjoint's scratch: the step's start and the points
+# of its second and third stages (adjoint_discrete.cl)
+SCRATCH_COLS = 9
+
+
+def backward_state_bytes(max_steps: int, every: int, adjoint: str, itemsize: int) -> int:
+    """Bytes per ray the backward pass keeps: 6 reals per checkpoint (max_steps // every of
+    them, at least one buffer slot) and, for the discrete adjoint, SCRATCH_COLS per step of
+    the segment it replays (every)."""
+    if every <= 0:
+        return 0
+    scratch = SCRATCH_COLS * every if adjoint == "discrete" else 0
+    return itemsize * (6 * max(max_steps // every, 1) + scratch)
 
 
 def box_entry(box: Box, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
@@ -85,7 +119,10 @@ class GradientEngine:
         loss_space: str = "srgb",
         checkpoint_every: int = 0,
         growth_max: float = 0.0,
+        adjoint: str = "continuous",
     ):
+        if adjoint not in ADJOINTS:
+            raise ClrefractError(f"adjoint must be one of {ADJOINTS}, got {adjoint!r}")
         self.runtime = runtime or Runtime(queues=queues)
         if len(self.runtime.queues) < queues:
             raise ClrefractError(f"runtime has {len(self.runtime.queues)} queues, need {queues}")
@@ -99,19 +136,26 @@ class GradientEngine:
             lanes=lanes,
             max_steps=max_steps,
             runtime=self.runtime,
-            adjoint=True,
+            adjoint=adjoint,
         )
         self.field, self.box, self.loss_space = field, box, loss_space
         if checkpoint_every < 0:
             raise ClrefractError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
         # 0: constant memory; C > 0: forward states kept every C steps bound the drift
         self.checkpoint_every = int(checkpoint_every)
+        self.adjoint = adjoint
+        if adjoint == "discrete" and not self.checkpoint_every:
+            # K = sqrt(max_steps) balances checkpoints against the scratch of one segment
+            self.checkpoint_every = discrete_segment(self.tracer.max_steps)
         if not (growth_max >= 0 and np.isfinite(growth_max)):
             raise ClrefractError(f"growth_max must be >= 0 (0: off), got {growth_max}")
         # a ray's backward pass stops once its adjoint grew by this factor (0: never)
         self.growth_max = float(growth_max)
         self._ckpt: dict[int, tuple] = {}
         self._k_adjoint = self.tracer.kernels.adjoint_rays
+        if adjoint == "discrete":
+            self._k_adjoint = self.tracer.kernels.adjoint_discrete
+        self._scratch: dict[int, tuple] = {}
         self.n_shared = int(getattr(field, "n_shared", 0))
 
     def _checkpoint_buffer(self, queue, size: int):
@@ -122,6 +166,28 @@ class GradientEngine:
             buf = self.tracer.checkpoint_buffer(size, self.checkpoint_every)
             self._ckpt[id(queue)] = (buf, size)
         return buf
+
+    def _scratch_buffer(self, queue, size: int):
+        """The queue's scratch for the discrete adjoint's replayed segment (K steps)."""
+        buf, cap = self._scratch.get(id(queue), (None, -1))
+        if cap < size:
+            tr = self.tracer
+            nbytes = self.checkpoint_every * SCRATCH_COLS * size * np.dtype(tr.dtype).itemsize
+            check_device_buffer(
+                f"the discrete adjoint's segments of {self.checkpoint_every} steps for {size} rays",
+                nbytes,
+                self.runtime.info,
+            )
+            cl = self.runtime.cl
+            buf = cl.Buffer(self.runtime.context, cl.mem_flags.READ_WRITE, nbytes)
+            self._scratch[id(queue)] = (buf, size)
+        return buf
+
+    def state_bytes_per_ray(self) -> int:
+        """Device bytes per ray that the backward pass keeps beside constant-size state."""
+        tr = self.tracer
+        itemsize = np.dtype(tr.dtype).itemsize
+        return backward_state_bytes(tr.max_steps, self.checkpoint_every, self.adjoint, itemsize)
 
     def set_params(self, params: np.ndarray) -> None:
         self.field.set_data(params)
@@ -147,7 +213,7 @@ class GradientEngine:
             args += [Out(a) for a in outs + [status, steps] + last]
             args += [np.int32(self.checkpoint_every), ckpt]
             tr._enqueue(tr._k_trace, size // tr.lanes, args, q)
-            pending.append((idx, outs, status, steps, last, ckpt))
+            pending.append((idx, outs, status, steps, last, ckpt, o, d))
         for q in self.queues:
             q.finish()
         return pending
@@ -179,7 +245,7 @@ class GradientEngine:
 
         n_par = len(self.field.data())
         jobs = []
-        for q, (idx, outs, st, sp, last, ckpt) in zip(self.queues, pending):
+        for q, (idx, outs, st, sp, last, ckpt, o, d) in zip(self.queues, pending):
             size, m = len(st), len(idx)
             mu_cols = []
             for k in range(3):
@@ -191,10 +257,11 @@ class GradientEngine:
             partial = np.zeros(max(items * self.n_shared, 1), tr.dtype)
             # x, y, z, checkpoint gap, adjoint growth
             back = [np.empty(size, tr.dtype) for _ in range(5)]
+            # continuous: from the last state; discrete: replayed from the entry and checkpoints
+            start = [*last, *outs[3:6]] if self.adjoint == "continuous" else [*o, *d]
             args = [
                 tr.dtype(tr.step),
-                *last,
-                *outs[3:6],
+                *start,
                 sp,
                 *mu_cols,
                 InOut(grad),
@@ -203,10 +270,10 @@ class GradientEngine:
                 np.int32(tr.max_steps),
                 np.int32(self.checkpoint_every),
                 ckpt,
-                Out(back[3]),
-                tr.dtype(self.growth_max),
-                Out(back[4]),
             ]
+            if self.adjoint == "discrete":
+                args.append(self._scratch_buffer(q, size))
+            args += [Out(back[3]), tr.dtype(self.growth_max), Out(back[4])]
             tr._enqueue(self._k_adjoint, items, args, q, local=_adjoint_group(items, tr.lanes))
             jobs.append((idx, grad, partial, back, items))
         total = np.zeros(n_par)

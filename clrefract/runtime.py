@@ -58,14 +58,14 @@ def _cl():
 def kernel_source(name: str) -> str:
     """Text of one OpenCL source shipped in the package (`kernels_cl/` in the repository).
 
-    Tests run from a checkout import its clrefract/, which has no kernels_cl subpackage when
-    the package was installed non-editable: the checkout's kernels_cl/ beside it serves."""
+    Code imported from a checkout uses that checkout's kernels_cl/ beside it: an installed
+    package (editable ones included) may map clrefract.kernels_cl to another checkout."""
+    beside = Path(__file__).resolve().parent.parent / "kernels_cl" / name
+    if beside.is_file():
+        return beside.read_text()
     try:
         return resources.files("clrefract.kernels_cl").joinpath(name).read_text()
     except (FileNotFoundError, ModuleNotFoundError) as exc:
-        beside = Path(__file__).resolve().parent.parent / "kernels_cl" / name
-        if beside.is_file():
-            return beside.read_text()
         raise ClrefractError(f"kernel source {name!r} is missing from the package: {exc}") from None
 
 

@@ -59,7 +59,9 @@ class Tracer:
 
     step: the increment of sigma (arc length / eta) per integrator step, in mm.
     lanes: rays per work-item; None picks the device's default (16 on CPUs, 1 on GPUs).
-    adjoint: also build the backward-pass kernel (fields with parameters only).
+    adjoint: also build the backward-pass kernel (fields with parameters only): True or
+        "continuous" the adjoint-state pass, "discrete" also the exact discrete adjoint
+        (adjoint_discrete.cl: rkn4 only).
     tol: with integrator "dopri5", the local error per step (mm of position, and of v) that
         its adaptive step keeps to; `step` is then the largest step, and TraceResult.steps
         counts attempted steps (rejected ones cost evaluations too). Forward only: the
@@ -148,6 +150,10 @@ class Tracer:
             self.occupancy = empty_distance(field, box, res)
             defines.update(SKIP_EMPTY=1, OCC_N=res)
         sources = ["common.h", field.source, "trace.cl"]
+        if adjoint not in (False, True, "continuous", "discrete"):
+            raise ClrefractError(f"adjoint must be 'continuous' or 'discrete', got {adjoint!r}")
+        if adjoint == "discrete" and integrator != "rkn4":
+            raise ClrefractError(f"the discrete adjoint reverses rkn4 steps, not {integrator!r}")
         if adjoint:
             adj = getattr(field, "adjoint_source", None)
             if adj is None:
@@ -156,6 +162,8 @@ class Tracer:
                     "(fitting supports: voxel, hashgrid)"
                 )
             sources = ["common.h", field.source, adj, "trace.cl", "adjoint.cl"]
+            if adjoint == "discrete":
+                sources.append("adjoint_discrete.cl")
         self.kernels = prg = self.runtime.build(sources, defines, precision)
         self._k_trace = prg.trace_rays
         self._k_propagate = prg.propagate_rays

@@ -292,6 +292,31 @@ inline realv empty_jump(__global const int *occ, realv x, realv y, realv z, real
 #define SKIP_ARG
 #endif
 
+/* Where a ray from origin o along u enters the box, and its v = eta u there (the origin,
+ * where it starts inside or misses). u is normalised in place. Returns the hit mask.
+ * Shared by the forward pass and the discrete adjoint, which replays from the same state. */
+inline maskv ray_entry(FIELD_PARAMS, realv ox, realv oy, realv oz, realv *ux, realv *uy,
+                       realv *uz, realv *x, realv *y, realv *z, realv *vx, realv *vy,
+                       realv *vz) {
+    realv un = rsqrt(*ux * *ux + *uy * *uy + *uz * *uz);
+    *ux *= un; *uy *= un; *uz *= un;
+    /* slab test against the box */
+    realv t1 = (RV(BOX_LO_X) - ox) / *ux, t2 = (RV(BOX_HI_X) - ox) / *ux;
+    realv tmin = fmin(t1, t2), tmax = fmax(t1, t2);
+    t1 = (RV(BOX_LO_Y) - oy) / *uy; t2 = (RV(BOX_HI_Y) - oy) / *uy;
+    tmin = fmax(tmin, fmin(t1, t2)); tmax = fmin(tmax, fmax(t1, t2));
+    t1 = (RV(BOX_LO_Z) - oz) / *uz; t2 = (RV(BOX_HI_Z) - oz) / *uz;
+    tmin = fmax(tmin, fmin(t1, t2)); tmax = fmin(tmax, fmax(t1, t2));
+    tmin = fmax(tmin, RV(0));
+    maskv hit = tmax >= tmin;
+    realv t0 = SEL(RV(0), tmin, hit);
+    *x = ox + t0 * *ux; *y = oy + t0 * *uy; *z = oz + t0 * *uz;
+    realv g0x, g0y, g0z;
+    realv eta0 = field_eval(FIELD_ARGS, *x, *y, *z, &g0x, &g0y, &g0z);
+    *vx = eta0 * *ux; *vy = eta0 * *uy; *vz = eta0 * *uz;
+    return hit;
+}
+
 /* Trace rays: straight to the box, integrate inside, straight out of the exit face.
  * Outputs the exit point, the exit v (direction times |v|), a status, the step count and
  * the last state inside the box (where the backward pass starts). With ckpt_every = C > 0,
@@ -310,27 +335,10 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
                          __global REAL *ckpt SKIP_ARG) {
     const size_t i = get_global_id(0);
     const size_t col = get_global_size(0) * LANES;
-    realv x = VLOAD(i, ox), y = VLOAD(i, oy), z = VLOAD(i, oz);
+    realv sx = VLOAD(i, ox), sy = VLOAD(i, oy), sz = VLOAD(i, oz); /* kept for missed rays */
     realv ux = VLOAD(i, dx), uy = VLOAD(i, dy), uz = VLOAD(i, dz);
-    realv un = rsqrt(ux * ux + uy * uy + uz * uz);
-    ux *= un; uy *= un; uz *= un;
-
-    /* slab test against the box */
-    realv t1 = (RV(BOX_LO_X) - x) / ux, t2 = (RV(BOX_HI_X) - x) / ux;
-    realv tmin = fmin(t1, t2), tmax = fmax(t1, t2);
-    t1 = (RV(BOX_LO_Y) - y) / uy; t2 = (RV(BOX_HI_Y) - y) / uy;
-    tmin = fmax(tmin, fmin(t1, t2)); tmax = fmin(tmax, fmax(t1, t2));
-    t1 = (RV(BOX_LO_Z) - z) / uz; t2 = (RV(BOX_HI_Z) - z) / uz;
-    tmin = fmax(tmin, fmin(t1, t2)); tmax = fmin(tmax, fmax(t1, t2));
-    tmin = fmax(tmin, RV(0));
-    maskv hit = tmax >= tmin;
-
-    realv sx = x, sy = y, sz = z; /* kept for missed rays */
-    realv t0 = SEL(RV(0), tmin, hit);
-    x += t0 * ux; y += t0 * uy; z += t0 * uz;
-    realv g0x, g0y, g0z;
-    realv eta0 = field_eval(FIELD_ARGS, x, y, z, &g0x, &g0y, &g0z);
-    realv vx = eta0 * ux, vy = eta0 * uy, vz = eta0 * uz;
+    realv x, y, z, vx, vy, vz;
+    maskv hit = ray_entry(FIELD_ARGS, sx, sy, sz, &ux, &uy, &uz, &x, &y, &z, &vx, &vy, &vz);
 
     maskv active = hit;
     realv st = SEL(RV(ST_MISSED), RV(ST_EXITED), hit);

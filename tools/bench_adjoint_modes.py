@@ -1,0 +1,138 @@
+"""Continuous against discrete adjoint: agreement with central finite differences of the
+forward renderer (float64, small scene) and backward-pass time and state memory (float32).
+
+    python tools/bench_adjoint_modes.py [--rays 4096] [--step 1.0] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from clrefract.envmap import EnvMap, pixel_directions  # noqa: E402
+from clrefract.fields.base import Box  # noqa: E402
+from clrefract.fields.voxel import VoxelGrid  # noqa: E402
+from clrefract.gradient import GradientEngine  # noqa: E402
+from clrefract.loss import photometric_loss  # noqa: E402
+
+BOX = Box(margin=4.0)
+
+
+def scene(n_rays: int, res: int = 12, seed: int = 0):
+    """A Gaussian lens with noise on a res^3 grid, rays along +z, a smooth environment."""
+    rng = np.random.default_rng(seed)
+    ax = np.linspace(-50, 50, res)
+    X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
+    vals = 1 + 0.3 * np.exp(-(X**2 + Y**2 + Z**2) / (2 * 18**2))
+    vals += 0.02 * rng.normal(size=X.shape)
+    o = np.column_stack([rng.uniform(-30, 30, (n_rays, 2)), np.full(n_rays, -150.0)])
+    d = np.column_stack([rng.normal(0, 0.05, (n_rays, 2)), np.ones(n_rays)])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    px = pixel_directions(2048, 1024)
+    img = np.stack(
+        [
+            1 + 0.5 * np.sin(3 * px[..., 0] + 1) * np.cos(2 * px[..., 2]),
+            1 + 0.5 * np.cos(4 * px[..., 1]),
+            1 + 0.3 * px[..., 2],
+        ],
+        -1,
+    )
+    env = EnvMap(0.4 * img)
+    target = env.lookup(d + rng.normal(0, 0.02, d.shape)).astype(np.float64)
+    return vals, o, d, env, target
+
+
+def fd_agreement(mode: str, step: float, interp: str, n_dirs: int = 3, eps: float = 1e-7):
+    """Relative errors of <g, u> against central differences of the forward loss."""
+    vals, o, d, env, target = scene(100)
+    eng = GradientEngine(
+        VoxelGrid(vals, BOX, interp), BOX, step=step, precision="float64", lanes=4, adjoint=mode
+    )
+    g = eng.loss_and_grad(o, d, target, env).grad
+    p0 = vals.ravel().copy()
+
+    def loss(p):
+        eng.set_params(p)
+        tr = eng.tracer.trace(o, d)
+        w = (tr.status == 0).astype(float)
+        return photometric_loss(env, tr.last_velocity, target, weight=w)[0]
+
+    rng = np.random.default_rng(1)
+    errs = []
+    for _ in range(n_dirs):
+        u = rng.normal(size=p0.shape)
+        fd = (loss(p0 + eps * u) - loss(p0 - eps * u)) / (2 * eps)
+        errs.append(abs(fd - g @ u) / abs(fd))
+    return errs
+
+
+def timing(mode: str, every: int, n_rays: int, step: float, repeats: int):
+    vals, o, d, env, target = scene(n_rays, res=32)
+    eng = GradientEngine(
+        VoxelGrid(vals, BOX, "bspline"), BOX, step=step, adjoint=mode, checkpoint_every=every
+    )
+    eng.loss_and_grad(o[:64], d[:64], target[:64], env)  # build and warm up
+    fwd = tot = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        eng.forward(o, d)
+        fwd = min(fwd, time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        eng.loss_and_grad(o, d, target, env)
+        tot = min(tot, time.perf_counter() - t0)
+    return {
+        "adjoint": mode,
+        "K": eng.checkpoint_every,
+        "forward_s": fwd,
+        "backward_s": tot - fwd,
+        "state_bytes_per_ray": eng.state_bytes_per_ray(),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rays", type=int, default=4096)
+    ap.add_argument("--step", type=float, default=1.0)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--json", default="bench_results/adjoint_modes.json")
+    args = ap.parse_args()
+    out: dict = {"fd": [], "timing": []}
+    print("FD agreement, float64, 100 rays, 12^3 grid, eps 1e-7 (relative error per direction):")
+    for interp in ("smoothstep", "bspline"):
+        for step in (2.0, 0.5):
+            for mode in ("continuous", "discrete"):
+                e = fd_agreement(mode, step, interp)
+                out["fd"].append({"interp": interp, "step": step, "adjoint": mode, "errors": e})
+                print(
+                    f"  {interp:10} step {step:3}  {mode:10}  " + "  ".join(f"{x:.2e}" for x in e)
+                )
+    print(f"Backward pass, {args.rays} rays, 32^3 bspline, float32, step {args.step}:")
+    rows = [
+        timing("continuous", 8, args.rays, args.step, args.repeats),
+        timing("discrete", 8, args.rays, args.step, args.repeats),
+        timing("discrete", 0, args.rays, args.step, args.repeats),
+    ]
+    base = rows[0]["backward_s"]
+    for r in rows:
+        r["ratio_to_continuous"] = r["backward_s"] / base
+        print(
+            f"  {r['adjoint']:10} K {r['K']:3}  forward {r['forward_s']:.3f} s  backward "
+            f"{r['backward_s']:.3f} s  x{r['ratio_to_continuous']:.2f}  "
+            f"{r['state_bytes_per_ray']} B/ray"
+        )
+    out["timing"] = rows
+    path = Path(args.json)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=2))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
