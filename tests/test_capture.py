@@ -319,6 +319,11 @@ def test_masks_folder_is_checked_and_nameless_frames_have_their_own(rendered, tm
     assert main(["dataset", "check", str(cap)]) == 2
     assert "masks/r_002.png: mask is 5x5 but its camera says 16x16" in capsys.readouterr().out
     (cap / "masks" / "r_002.png").unlink()
+    iio.imwrite(cap / "masks" / "r_001.png", np.full((16, 16), 255, np.uint8))
+    out = tmp_path / "ds"  # the import takes masks/<frame> along
+    assert main(["dataset", "import", str(cap), "--out", str(out), "--scale", "100"]) == 0
+    imported = Dataset(out)
+    assert imported.mask(imported.train[0]).all() and not imported.has_mask(imported.train[1])
     d = Dataset(cap)
     for k, cam in enumerate(d.train[:3]):  # frames made without a file or a name
         cam.file_path = cam.name = ""
