@@ -255,16 +255,17 @@ def _cmd_dataset_import(args) -> int:
 
 
 def _cmd_dataset_check(args) -> int:
-    from .dataset import check_dataset
+    from .dataset import box_of, check_dataset
 
     notes: list[str] = []
-    problems = check_dataset(Path(args.dir), notes)
+    box = box_of(args.box) if args.box else None
+    problems = check_dataset(Path(args.dir), notes, box=box)
     for n in notes:
         print(f"{args.dir}: {n}")
     for p in problems:
         print(p)
     print(f"{args.dir}: {'OK' if not problems else f'{len(problems)} problem(s)'}")
-    return 1 if problems else 0
+    return 2 if problems else 0  # bad input, as everywhere
 
 
 def _cmd_fit(args) -> int:
@@ -300,6 +301,10 @@ def _cmd_fit(args) -> int:
             "test_views",
         )
     }
+    if args.box:
+        from .dataset import box_values
+
+        overrides["box"] = tuple(box_values(args.box))
     if args.resume:
         _check_resume_flags(Path(args.out), overrides, args.config)
     cfg = load_config(Path(args.config) if args.config else None, overrides)
@@ -407,6 +412,23 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def _add_box_option(p: argparse.ArgumentParser, what: str) -> None:
+    # parsed by dataset.box_values, which names a bad value in one line (exit status 2)
+    p.add_argument("--box", nargs="+", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX", help=f"{what}")
+
+
+def _joined_box(argv: list[str]) -> list[str]:
+    """'--box -5,-5,-5,5,5,5' as '--box=-5,...': argparse takes a value that starts with '-'
+    and is not one number for an option."""
+    out: list[str] = []
+    for a in argv:
+        if out and out[-1] == "--box" and "," in a:
+            out[-1] = f"--box={a}"
+        else:
+            out.append(a)
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="clrefract", description=__doc__)
     ap.add_argument(
@@ -489,18 +511,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--scale", type=float, default=1.0, help="millimetres per unit of the camera poses"
     )
-    p.add_argument(
-        "--box",
-        type=float,
-        nargs=6,
-        metavar=("XLO", "YLO", "ZLO", "XHI", "YHI", "ZHI"),
-        help="the object's box in the poses' units (default: the region the cameras look at)",
+    _add_box_option(
+        p,
+        "the object's box in the poses' units (default: instant-ngp's box where "
+        "transforms.json sets aabb_scale, scale or offset, else the region the cameras look at)",
     )
     p.add_argument("--eta-range", type=float, nargs=2, default=[1.0, 1.6], metavar=("LO", "HI"))
     p.add_argument("--envmap", help="equirectangular HDR EXR (default: SRC/envmap.exr)")
     p.set_defaults(func=_cmd_dataset_import)
     p = ds.add_parser("check", help="validate a dataset folder and name every problem")
     p.add_argument("dir")
+    _add_box_option(p, "the object's box in mm, instead of scene.json's or the cameras'")
     p.set_defaults(func=_cmd_dataset_check)
 
     p = sub.add_parser("fit", help="recover eta from a dataset")
@@ -508,6 +529,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="run folder")
     p.add_argument("--config", help="TOML file of fit settings (flags override it)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    _add_box_option(p, "the object's box in mm, instead of scene.json's or the cameras'")
     p.add_argument(
         "--field",
         choices=["levelset", "voxel", "hashgrid"],
@@ -607,6 +629,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = _joined_box(list(sys.argv[1:] if argv is None else argv))
     args = build_parser().parse_args(argv)
     if args.verbose:
         from .runtime import set_verbose

@@ -21,7 +21,7 @@ from .cameras import IMAGE_SUFFIXES, Camera, frame_stem, load_transforms
 from .envmap import EnvMap
 from .errors import ClrefractError
 from .fields.base import Box
-from .imageio import atomic_path, read_frame
+from .imageio import atomic_path, read_frame_rgba
 from .limits import check_training_rays
 
 SCENE_FILE = "scene.json"
@@ -78,7 +78,7 @@ def write_scene(root: Path, scene: Scene) -> None:
         tmp.write_text(json.dumps(scene.to_dict(), indent=2) + "\n")
 
 
-def _numbers(value, n: int) -> bool:
+def finite_numbers(value, n: int) -> bool:
     """Whether value is a list of n finite numbers (JSON true/false are not numbers)."""
     return (
         isinstance(value, list | tuple)
@@ -93,6 +93,43 @@ def default_margin(lo, hi) -> float:
     return float(min(DEFAULT_MARGIN, np.min(np.asarray(hi) - np.asarray(lo)) / 10))
 
 
+BOX_HELP = "xmin,ymin,zmin,xmax,ymax,zmax"
+
+
+def box_values(values, what: str = "--box") -> list[float]:
+    """The six numbers of a box option, given as one comma-separated string or as separate
+    values (or both): xmin, ymin, zmin, xmax, ymax, zmax, each minimum below its maximum."""
+    items = [values] if isinstance(values, str) else list(values)
+    words = [w for item in items for w in str(item).replace(",", " ").split()]
+    if len(words) != 6:
+        raise ClrefractError(f"{what} needs six numbers {BOX_HELP}, got {len(words)}")
+    try:
+        nums = [float(w) for w in words]
+    except ValueError:
+        bad = next(w for w in words if not _is_float(w))
+        raise ClrefractError(f"{what}: {bad!r} is not a number ({BOX_HELP})") from None
+    if not all(np.isfinite(nums)):
+        raise ClrefractError(f"{what}: every number must be finite, got {words}")
+    for a, lo, hi in zip("xyz", nums[:3], nums[3:]):
+        if not lo < hi:
+            raise ClrefractError(f"{what}: {a}min must be below {a}max, got {lo:g} >= {hi:g}")
+    return nums
+
+
+def _is_float(word: str) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
+
+
+def box_of(values, scale: float = 1.0, what: str = "--box") -> Box:
+    """A Box (mm) from box option values in units of `scale` mm, with the default margin."""
+    nums = np.array(box_values(values, what)) * scale
+    return Box(tuple(nums[:3]), tuple(nums[3:]), default_margin(nums[:3], nums[3:]))
+
+
 def _box(path: Path, d) -> Box:
     if not isinstance(d, dict):
         raise ClrefractError(f"{path}: 'box' must be an object with 'lo', 'hi' and 'margin'")
@@ -102,10 +139,10 @@ def _box(path: Path, d) -> Box:
                 f"{path}: 'box' needs '{key}', its {words} corner [x, y, z] in mm (or leave "
                 "out 'box' to take it from the cameras)"
             )
-        if not _numbers(d[key], 3):
+        if not finite_numbers(d[key], 3):
             raise ClrefractError(f"{path}: box '{key}' must be 3 numbers (mm), got {d[key]!r}")
     margin = d.get("margin", default_margin(d["lo"], d["hi"]))
-    if not _numbers([margin], 1):
+    if not finite_numbers([margin], 1):
         raise ClrefractError(f"{path}: box 'margin' must be a number of mm, got {margin!r}")
     try:
         return Box(tuple(map(float, d["lo"])), tuple(map(float, d["hi"])), float(margin))
@@ -166,7 +203,7 @@ def read_scene(root: Path) -> Scene:
     elif "margin" not in d["box"]:
         assumed.append(f"box margin: {box.margin:g} mm")
     eta = d.get("eta_range", DEFAULT_ETA_RANGE)
-    if not _numbers(eta, 2) or not 1.0 <= eta[0] < eta[1]:
+    if not finite_numbers(eta, 2) or not 1.0 <= eta[0] < eta[1]:
         raise ClrefractError(
             f"{path}: 'eta_range' must be [lo, hi], numbers with 1 <= lo < hi, got {eta!r}"
         )
@@ -269,7 +306,7 @@ def image_path(root: Path, rel: str, suffix: str) -> Path:
 def read_frame_image(path: Path, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
     """A frame's linear image (times its exposure) and the loss weight of each pixel (0 where
     the photograph clipped: its radiance is unknown), checked against its camera."""
-    img, clipped = read_frame(path)
+    img, clipped, alpha = read_frame_rgba(path)
     if img.shape[:2] != (cam.height, cam.width):
         raise ClrefractError(
             f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
@@ -277,10 +314,38 @@ def read_frame_image(path: Path, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
         )
     if not np.isfinite(img).all():
         raise ClrefractError(f"{path}: image has NaN or infinite pixels")
+    check_background(path, img, alpha)
     weight = np.ones(img.shape[:2], np.float32)
     if clipped is not None:
         weight[clipped] = 0.0
     return img * np.float32(cam.exposure), weight
+
+
+def check_background(path: Path, img: np.ndarray, alpha: np.ndarray | None) -> None:
+    """Refuse a frame whose background was cut away (NeRF-synthetic RGBA: alpha 0 over one
+    flat colour, usually black). The loss compares every pixel with the environment seen
+    through it, so a frame must show the environment; a photograph over it never holds
+    one flat colour wherever its alpha is 0 (there the alpha is only a matte)."""
+    if alpha is None:
+        return
+    clear = alpha <= 0
+    if clear.mean() < 0.01:
+        return
+    under = img[clear]
+    if np.ptp(under, axis=0).max() == 0:
+        raise ClrefractError(
+            f"{path}: transparent background ({100 * clear.mean():.0f}% of the pixels have "
+            "alpha 0 and hold no picture): frames must show the environment behind the "
+            "object; render or photograph them with it (their alpha then serves as the mask)"
+        )
+
+
+def alpha_mask(alpha: np.ndarray | None) -> np.ndarray | None:
+    """The object mask of a frame's alpha (alpha > 0.5: the object) where the alpha varies;
+    None where it is constant (an opaque frame says nothing of the object)."""
+    if alpha is None or alpha.min() == alpha.max():
+        return None
+    return alpha > 0.5
 
 
 def sees_box(cam: Camera, box: Box) -> bool:
@@ -308,6 +373,19 @@ def sees_box(cam: Camera, box: Box) -> bool:
 MASK_DIR = "masks"
 
 
+def mask_file(root: Path, cam: Camera, k: int) -> Path | None:
+    """The user's object mask of frame k of its split: its mask_path, else masks/<frame>.png
+    (or any image type) in the dataset folder, named after the frame's file (view_<k> for a
+    frame without one); None without one."""
+    if cam.mask_path:
+        return image_path(root, cam.mask_path, ".png")
+    stem = frame_stem(cam, k)
+    return next(
+        (p for s in IMAGE_SUFFIXES if (p := Path(root) / MASK_DIR / f"{stem}{s}").is_file()),
+        None,
+    )
+
+
 def read_mask(path: Path, cam: Camera) -> np.ndarray:
     """A mask image as (H, W) bool: above half grey in its first channel, or where its alpha
     channel (if it varies) is above half."""
@@ -328,12 +406,16 @@ def read_mask(path: Path, cam: Camera) -> np.ndarray:
 class Dataset:
     """A dataset folder: scene, cameras, images (read on demand) and environment map."""
 
-    def __init__(self, root):
+    def __init__(self, root, box: Box | None = None):
+        """`box` (e.g. from --box) replaces the scene's box and the one taken from the
+        cameras."""
         self.root = Path(root)
         if not self.root.is_dir():
             raise ClrefractError(f"{self.root}: dataset folder not found")
         self.scene = read_scene(self.root)
         self.train, self.test = load_cameras(self.root, self.scene)
+        if box is not None:
+            self.scene.box = box
         if self.scene.box is None:
             self.scene.box = box_from_cameras(self.train + self.test, str(self.root))
         self.suffix = self.scene.frames or frame_suffix(self.root, self.train + self.test)
@@ -341,6 +423,7 @@ class Dataset:
             if cam.mask_path and not image_path(self.root, cam.mask_path, ".png").is_file():
                 raise ClrefractError(f"{self.root / cam.mask_path}: mask file not found")
         self._weights: dict[str, np.ndarray] = {}
+        self._alpha_masks: dict[int, np.ndarray | None] = {}
 
     @property
     def box(self) -> Box:
@@ -349,33 +432,52 @@ class Dataset:
     def envmap(self) -> EnvMap:
         return EnvMap.from_exr(self.root / self.scene.envmap)
 
+    def frame_path(self, cam: Camera) -> Path:
+        return frame_image_path(self.root, cam, self.suffix)
+
     def frame(self, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
         """Linear image (H, W, 3) and per-pixel loss weights (H, W) of a frame."""
-        return read_frame_image(frame_image_path(self.root, cam, self.suffix), cam)
+        return read_frame_image(self.frame_path(cam), cam)
 
     def image(self, cam: Camera) -> np.ndarray:
         return self.frame(cam)[0]
 
+    def _index(self, cam: Camera) -> int:
+        """The frame's place in its split (names the masks of frames without a file)."""
+        for split in (self.train, self.test):
+            for k, c in enumerate(split):
+                if c is cam:
+                    return k
+        return 0
+
     def mask_path(self, cam: Camera) -> Path | None:
-        """The user's object mask of a frame: its mask_path, else masks/<frame>.png (or any
-        image type) in the dataset folder; None without one."""
-        if cam.mask_path:
-            return image_path(self.root, cam.mask_path, ".png")
-        stem = frame_stem(cam, 0)
-        return next(
-            (p for s in IMAGE_SUFFIXES if (p := self.root / MASK_DIR / f"{stem}{s}").is_file()),
-            None,
-        )
+        """The user's object mask file of a frame (see mask_file); None without one."""
+        return mask_file(self.root, cam, self._index(cam))
+
+    def _alpha_mask(self, cam: Camera) -> np.ndarray | None:
+        if id(cam) not in self._alpha_masks:
+            alpha = read_frame_rgba(self.frame_path(cam))[2]
+            self._alpha_masks[id(cam)] = alpha_mask(alpha)
+        return self._alpha_masks[id(cam)]
 
     def has_mask(self, cam: Camera) -> bool:
-        return self.mask_path(cam) is not None
+        return self.mask_path(cam) is not None or self._alpha_mask(cam) is not None
 
     def mask(self, cam: Camera) -> np.ndarray:
-        """(H, W) bool object mask of a frame (white, or opaque alpha: the object)."""
+        """(H, W) bool object mask of a frame (white, or opaque alpha: the object): its mask
+        file, else the frame's own alpha channel where that varies."""
         path = self.mask_path(cam)
-        if path is None:
+        if path is not None:
+            return read_mask(path, cam)
+        mask = self._alpha_mask(cam)
+        if mask is None:
             raise ClrefractError(f"{self.root}: frame {cam.name} has no mask")
-        return read_mask(path, cam)
+        if mask.shape != (cam.height, cam.width):
+            raise ClrefractError(
+                f"{self.frame_path(cam)}: image is {mask.shape[1]}x{mask.shape[0]} but its "
+                f"camera says {cam.width}x{cam.height}"
+            )
+        return mask
 
     def pixel_weights(self, split: str = "train") -> np.ndarray:
         """Loss weights (n,) of a split's pixels in the order of rays_and_pixels: 0 where a
@@ -422,13 +524,20 @@ def _splits(root: Path, scene: Scene, problems: list[str]) -> list[tuple[str, li
     return [(name, loaded[name]) for name in (scene.train, scene.test) if name in loaded]
 
 
-def _describe_box(scene: Scene, cams: list[Camera], root: Path, notes: list[str]) -> None:
-    """Fill in a box taken from the cameras, saying so, and doubt one too small for mm."""
-    if scene.box is None:
-        scene.box = box_from_cameras(cams, str(root))
+def _describe_box(
+    scene: Scene, cams: list[Camera], root: Path, notes: list[str], box: Box | None
+) -> None:
+    """Fill in the box (--box, else the cameras' where scene.json has none), saying where it
+    came from, and doubt one too small for mm."""
+    source = None
+    if box is not None:
+        scene.box, source = box, "--box"
+    elif scene.box is None:
+        scene.box, source = box_from_cameras(cams, str(root)), "the cameras"
+    if source:
         lo = ", ".join(f"{x:.4g}" for x in scene.box.lo)
         hi = ", ".join(f"{x:.4g}" for x in scene.box.hi)
-        notes.append(f"box from the cameras: [{lo}] to [{hi}] mm, margin {scene.box.margin:.3g}")
+        notes.append(f"box from {source}: [{lo}] to [{hi}] mm, margin {scene.box.margin:.3g}")
     size = float(np.min(scene.box.size))
     if size < 10:
         notes.append(
@@ -437,9 +546,10 @@ def _describe_box(scene: Scene, cams: list[Camera], root: Path, notes: list[str]
         )
 
 
-def check_dataset(root, notes: list[str] | None = None) -> list[str]:
+def check_dataset(root, notes: list[str] | None = None, box: Box | None = None) -> list[str]:
     """Every problem found in a dataset folder, as messages naming the file (empty: fine).
-    `notes` receives what was assumed for lack of a scene.json or of some of its keys."""
+    `notes` receives what was assumed for lack of a scene.json or of some of its keys;
+    `box` (--box) replaces the scene's."""
     root = Path(root)
     problems: list[str] = []
     notes = [] if notes is None else notes
@@ -449,14 +559,14 @@ def check_dataset(root, notes: list[str] | None = None) -> list[str]:
         scene = read_scene(root)
     except ClrefractError as exc:
         return [str(exc)]
-    notes.extend(f"assumed {a}" for a in scene.assumed)
+    notes.extend(f"assumed {a}" for a in scene.assumed if box is None or "box" not in a)
     try:
         EnvMap.from_exr(root / scene.envmap)
     except ClrefractError as exc:
         problems.append(str(exc))
     splits = _splits(root, scene, problems)
     try:
-        _describe_box(scene, [c for _, cams in splits for c in cams], root, notes)
+        _describe_box(scene, [c for _, cams in splits for c in cams], root, notes, box)
     except ClrefractError as exc:
         return problems + [str(exc)]
     lo, hi = np.asarray(scene.box.lo), np.asarray(scene.box.hi)
@@ -475,7 +585,7 @@ def check_dataset(root, notes: list[str] | None = None) -> list[str]:
                 problems.append(f"{where}: camera does not see the box at all")
             if np.all((c > lo) & (c < hi)):
                 problems.append(f"{where}: camera is inside the box")
-            mask = image_path(root, cam.mask_path, ".png") if cam.mask_path else None
+            mask = mask_file(root, cam, k)
             if mask is not None:
                 try:
                     read_mask(mask, cam)
@@ -486,7 +596,7 @@ def check_dataset(root, notes: list[str] | None = None) -> list[str]:
                 problems.append(f"{where}: image {path} is missing")
                 continue
             try:
-                img = read_frame(path)[0]
+                img, _, alpha = read_frame_rgba(path)
             except ClrefractError as exc:
                 problems.append(str(exc))
                 continue
@@ -498,4 +608,8 @@ def check_dataset(root, notes: list[str] | None = None) -> list[str]:
             if not np.isfinite(img).all():
                 bad = int((~np.isfinite(img)).any(axis=-1).sum())
                 problems.append(f"{path}: {bad} pixel(s) with non-finite values")
+            try:
+                check_background(path, img, alpha)
+            except ClrefractError as exc:
+                problems.append(str(exc))
     return problems

@@ -7,7 +7,7 @@ None with the rule that extracted it.
 
 Writes RUN/eval/ (or --out): eval.json, eval.md (the table), views/<view>.png (ground truth |
 render | error), slices.png (eta, or density, on the three central planes beside the truth)
-and surface.png (the extracted surface).
+surface.png (the extracted surface) and surface.ply (that surface as a mesh, mm).
 """
 
 from __future__ import annotations
@@ -112,8 +112,9 @@ def dataset_of(run: Path, dataset: Path | None) -> Path:
     return Path(named)
 
 
-def load_model(run: Path, ds, notes: list[str], runtime=None):
-    """The model a run folder holds, ready to render the dataset's views."""
+def load_model(run: Path, ds, notes: list[str], runtime=None, cfg=None):
+    """The model a run folder holds, ready to render the dataset's views (`cfg`: the run's
+    configuration, read from it when None)."""
     from .fields import load_field_file
     from .fields.base import Box
 
@@ -125,7 +126,8 @@ def load_model(run: Path, ds, notes: list[str], runtime=None):
     box = Box.from_dict(meta["box"]) if "box" in meta else ds.box
     field = load_field_file(run / "field.npz", box)
     eta_hi = float(ds.scene.eta_range[1])
-    return EtaModel(field, box, _config(run, notes), eta_hi, runtime=runtime)
+    cfg = cfg or _config(run, notes)
+    return EtaModel(field, box, cfg, eta_hi, runtime=runtime)
 
 
 def error_image(render: np.ndarray, truth: np.ndarray, gain: float = 4.0) -> np.ndarray:
@@ -237,15 +239,17 @@ def evaluate_run(
 ) -> dict:
     """Scores of a run on its dataset's test views (all, or the first `views`); `samples`
     surface points per side for the chamfer distance (the protocol's 100k unless told)."""
-    from .dataset import Dataset
+    from .dataset import Dataset, box_of
     from .mesh import read_mesh
     from .report import scene_truth
 
     run = Path(run)
     check_run(run)
-    ds = Dataset(dataset_of(run, dataset))
     notes: list[str] = []
-    model = load_model(run, ds, notes, runtime=runtime)
+    cfg = None if (run / "straight.npz").is_file() else _config(run, notes)
+    box = box_of(cfg.box) if cfg is not None and cfg.box else None  # the fit's --box
+    ds = Dataset(dataset_of(run, dataset), box=box)
+    model = load_model(run, ds, notes, runtime=runtime, cfg=cfg)
     out = ensure_out_dir(out or run / "eval", "eval folder")
     env = ds.envmap()
     cams = ds.test if views < 0 else ds.test[:views]
@@ -275,6 +279,12 @@ def evaluate_run(
         notes.append(GT_NOTE)
     mesh = _guard(result, "surface", lambda: model.surface(ds.box))
     result["surface_rule"] = model.surface_rule
+    result["surface"] = None
+    if mesh is not None:
+        from .mesh import write_mesh
+
+        if _guard(result, "surface.ply", lambda: write_mesh(out / "surface.ply", *mesh) or True):
+            result["surface"] = "surface.ply"
     if truth_mesh is not None:
         if mesh is None:
             notes.append("no surface could be extracted (the level is never crossed)")

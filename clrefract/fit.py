@@ -5,7 +5,8 @@ A run folder holds everything about one fit:
     metrics.jsonl      one JSON line per iteration
     checkpoint.npz     parameters, Adam state and iteration, written atomically
     field.npz          the fitted field, loadable by `clrefract render --field`
-    loss.png, slices.png, test/ (renders of the test views), results.json
+    loss.png, slices.png, test/ (renders of the test views), results.json, surface.ply
+    (the surface the chamfer distance scores, as a mesh)
 Batches, the environment blur and the grid resolution are functions of (seed, iteration),
 so a resumed run repeats exactly what an uninterrupted one would have done.
 """
@@ -22,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .adam import Adam
-from .dataset import Dataset
+from .dataset import Dataset, box_of, box_values
 from .errors import ClrefractError
 from .imageio import atomic_path, ensure_out_dir
 from .limits import check_fit_config
@@ -130,6 +131,8 @@ class FitConfig:
     # within 5 iterations, and healthy fits stay near their best
     diverge_factor: float = 5.0
     test_views: int = -1  # test views rendered at the end (-1: all)
+    # the object's box in mm, xmin, ymin, zmin, xmax, ymax, zmax (--box); (): the dataset's
+    box: tuple = ()
 
     @property
     def step_mm(self) -> float:
@@ -140,6 +143,8 @@ class FitConfig:
         return self.width / 4 if self.field in ("levelset", "hashgrid") else 1.0
 
     def validate(self) -> None:
+        if self.box:
+            self.box = tuple(box_values(self.box, "box"))
         if self.field not in FIELDS:
             raise ClrefractError(f"field must be one of {', '.join(FIELDS)}, got {self.field!r}")
         check_fit_config(self)
@@ -194,7 +199,10 @@ def load_config(path: Path | None, overrides: dict) -> FitConfig:
             raise ClrefractError(f"unknown config key {k!r} (known: {', '.join(known)})")
         default = getattr(cfg, k)
         try:
-            v = tuple(v) if isinstance(default, tuple) else type(default)(v)
+            if isinstance(default, tuple):  # a string is one value ("x,y,z,..."), not letters
+                v = (v,) if isinstance(v, str) else tuple(v)
+            else:
+                v = type(default)(v)
         except (TypeError, ValueError):
             raise ClrefractError(f"config key {k!r}: cannot use {v!r}") from None
         setattr(cfg, k, v)
@@ -321,7 +329,7 @@ class Fit:
         from .parallel import device_for
         from .runtime import Runtime
 
-        self.ds = Dataset(dataset)
+        self.ds = Dataset(dataset, box=box_of(cfg.box) if cfg.box else None)
         self.out, self.cfg = Path(out), cfg
         self.stream = stream or sys.stderr
         self.runtime = Runtime(device_for(cfg.device), queues=cfg.queues)
@@ -988,40 +996,60 @@ def _truncate_metrics(path: Path, iteration: int) -> None:
         tmp.write_text("".join(ln + "\n" for ln in keep))
 
 
+# what the start of a new run writes, removed again when the start fails
+START_FILES = ("config.toml", "metrics.jsonl", "init.json", *RUN_FILES)
+
+
 def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stream=None) -> Fit:
     """A run ready to go: a new run folder with its field at the start, or a resumed one."""
-    from .report import write_start_report
-
     out = Path(out)
     if resume:
         if not (out / "config.toml").is_file():
             raise ClrefractError(f"{out}: no run to resume (config.toml missing)")
         cfg = load_config(out / "config.toml", {})
-    elif any((out / name).exists() for name in RUN_FILES):
+        ensure_out_dir(out, "run folder")
+        fit = Fit(dataset, out, cfg, stream=stream)
+        fit.load_checkpoint()
+        _truncate_metrics(out / "metrics.jsonl", fit.it)
+        return fit
+    if any((out / name).exists() for name in RUN_FILES):
         raise ClrefractError(
             f"{out} already holds a run: use --resume to continue it, or another --out"
         )
+    fresh_folder = not out.exists()
     ensure_out_dir(out, "run folder")
+    had = {name for name in START_FILES if (out / name).exists()}
+    try:
+        return _start_run(dataset, out, cfg, stream)
+    except BaseException:
+        # a start that failed (or was interrupted) leaves no run behind: nothing to resume
+        for name in START_FILES:
+            if name not in had:
+                (out / name).unlink(missing_ok=True)
+        if fresh_folder and not any(out.iterdir()):
+            out.rmdir()
+        raise
+
+
+def _start_run(dataset: Path, out: Path, cfg: FitConfig, stream) -> Fit:
+    from .report import write_start_report
+
     fit = Fit(dataset, out, cfg, stream=stream)
-    if resume:
-        fit.load_checkpoint()
-        _truncate_metrics(out / "metrics.jsonl", fit.it)
-    else:
-        (out / "config.toml").write_text(_toml(cfg))
-        (out / "metrics.jsonl").write_text("")
-        t0 = time.perf_counter()
-        fit.start()
-        write_start_report(fit, time.perf_counter() - t0)
-        (out / "run.json").write_text(  # the field's box: a level set's is the object's
-            json.dumps(
-                {
-                    "dataset": str(Path(dataset).resolve()),
-                    "box": fit.box.to_dict(),
-                    "eta_max": fit.eta_max,
-                },
-                indent=2,
-            )
+    (out / "config.toml").write_text(_toml(cfg))
+    (out / "metrics.jsonl").write_text("")
+    t0 = time.perf_counter()
+    fit.start()
+    write_start_report(fit, time.perf_counter() - t0)
+    (out / "run.json").write_text(  # the field's box: a level set's is the object's
+        json.dumps(
+            {
+                "dataset": str(Path(dataset).resolve()),
+                "box": fit.box.to_dict(),
+                "eta_max": fit.eta_max,
+            },
+            indent=2,
         )
+    )
     return fit
 
 

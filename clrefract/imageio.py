@@ -73,6 +73,12 @@ def _rgb_channel_names(names: list[str]) -> tuple[str, str, str] | None:
 
 def read_exr_rgb(path: PathLike) -> np.ndarray:
     """Linear RGB (H, W, 3) float32 from an EXR with float or half R, G, B channels."""
+    return read_exr_rgba(path)[0]
+
+
+def read_exr_rgba(path: PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """Linear RGB (H, W, 3) float32 of an EXR, and its alpha (H, W) (None without an A
+    channel), as stored: not un-premultiplied."""
     path = Path(path)
     if not path.is_file():
         raise ClrefractError(f"{path}: EXR file not found")
@@ -90,7 +96,12 @@ def read_exr_rgb(path: PathLike) -> np.ndarray:
     planes = [np.asarray(channels[n]) for n in names]
     if any(p.ndim != 2 or p.shape != planes[0].shape for p in planes):
         raise ClrefractError(f"{path}: R, G, B channels differ in size (subsampled channels?)")
-    return np.ascontiguousarray(np.stack(planes, axis=-1), dtype=np.float32)
+    rgb = np.ascontiguousarray(np.stack(planes, axis=-1), dtype=np.float32)
+    a_name = names[0][:-1] + "A"  # 'A' beside 'R', or 'layer.A' beside 'layer.R'
+    alpha = np.asarray(channels[a_name], np.float32) if a_name in channels else None
+    if alpha is not None and alpha.shape != planes[0].shape:
+        raise ClrefractError(f"{path}: alpha channel differs in size from R, G, B")
+    return rgb, alpha
 
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -119,23 +130,37 @@ def read_pillow(path: PathLike, what: str, kind: str) -> np.ndarray:
 def read_photo_rgb(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Linear RGB (H, W, 3) float32 of an sRGB PNG or JPEG (8 or 16 bits, grey or colour,
     alpha ignored), and the (H, W) bool map of pixels clipped in some channel."""
+    return read_photo(path)[:2]
+
+
+def read_photo(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """read_photo_rgb's linear RGB and clipped map, and the alpha (H, W) in [0, 1] of a
+    grey+alpha or RGBA file (None without one). RGB is used as stored: not premultiplied."""
     raw = read_pillow(path, "image", "PNG or JPEG image")
     if raw.dtype not in (np.uint8, np.uint16) or raw.ndim not in (2, 3):
         raise ClrefractError(f"{path}: unsupported image layout {raw.shape} of {raw.dtype}")
     if raw.ndim == 2:
         raw = raw[:, :, None]
+    top = float(np.iinfo(raw.dtype).max)
     rgb = raw[:, :, :3] if raw.shape[2] >= 3 else np.repeat(raw[:, :, :1], 3, axis=2)
-    encoded = rgb.astype(np.float32) / float(np.iinfo(raw.dtype).max)
+    encoded = rgb.astype(np.float32) / top
     saturated = (encoded >= SATURATED - 1e-6).any(axis=2)
-    return srgb_to_linear(encoded), saturated
+    alpha = raw[:, :, -1].astype(np.float32) / top if raw.shape[2] in (2, 4) else None
+    return srgb_to_linear(encoded), saturated, alpha
 
 
 def read_frame(path: PathLike) -> tuple[np.ndarray, np.ndarray | None]:
     """A training or test frame: linear RGB, and the clipped-pixel map (None for EXR, whose
     values are radiance and never clip at a known level)."""
+    return read_frame_rgba(path)[:2]
+
+
+def read_frame_rgba(path: PathLike):
+    """read_frame's linear RGB and clipped map, and the frame's alpha (None without one)."""
     if Path(path).suffix.lower() in PHOTO_SUFFIXES:
-        return read_photo_rgb(path)
-    return read_exr_rgb(path), None
+        return read_photo(path)
+    rgb, alpha = read_exr_rgba(path)
+    return rgb, None, alpha
 
 
 def write_exr_rgb(path: PathLike, img: np.ndarray, half: bool = False) -> None:

@@ -2,16 +2,17 @@
 
     NeRF synthetic (Blender):  SRC/transforms_train.json, transforms_test.json (and _val,
                                not used), frames ./train/r_0 meaning r_0.png
-    instant-ngp / COLMAP:      SRC/transforms.json (aabb_scale, scale and offset are
-                               instant-ngp's own normalisation and are not used); every 8th
-                               frame becomes a test view
+    instant-ngp / COLMAP:      SRC/transforms.json; every 8th frame becomes a test view, and
+                               its aabb_scale, scale and offset give the box (ngp_box)
 Poses are multiplied by --scale into millimetres, frames and masks are copied beside the new
-transforms files, and scene.json records the box (--box, else the region the cameras look at),
-the index range and where the capture came from. Nothing in an existing dataset is replaced.
+transforms files, and scene.json records the box (--box, else instant-ngp's, else the region
+the cameras look at), the index range and where the capture came from. Nothing in an existing
+dataset is replaced.
 """
 
 from __future__ import annotations
 
+import json
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -22,12 +23,16 @@ from .cameras import IMAGE_SUFFIXES, Camera, load_transforms, save_transforms
 from .dataset import (
     DEFAULT_ETA_RANGE,
     DEFAULT_HOLDOUT,
+    MASK_DIR,
     SCENE_FILE,
     Scene,
     box_from_cameras,
+    box_of,
     default_margin,
+    finite_numbers,
     frame_suffix,
     holdout_split,
+    mask_file,
     write_scene,
 )
 from .errors import ClrefractError
@@ -37,16 +42,17 @@ from .imageio import ensure_out_dir
 WRITES = (SCENE_FILE, "transforms_train.json", "transforms_test.json")
 
 
-def _layout(src: Path) -> tuple[str, list[Camera], list[Camera]]:
-    """(layout name, train cameras, test cameras) of a capture folder or transforms file."""
+def _layout(src: Path) -> tuple[str, list[Camera], list[Camera], Path | None]:
+    """(layout name, train cameras, test cameras, the single transforms file or None) of a
+    capture folder or transforms file."""
     if src.is_file():
         src, single = src.parent, src.name
     elif (src / "transforms_train.json").is_file():
         train = load_transforms(src / "transforms_train.json")
         test_file = src / "transforms_test.json"
         if test_file.is_file():
-            return "nerf-synthetic", train, load_transforms(test_file)
-        return "nerf-synthetic", *holdout_split(train, DEFAULT_HOLDOUT)
+            return "nerf-synthetic", train, load_transforms(test_file), None
+        return "nerf-synthetic", *holdout_split(train, DEFAULT_HOLDOUT), None
     elif (src / "transforms.json").is_file():
         single = "transforms.json"
     elif not src.exists():
@@ -60,7 +66,7 @@ def _layout(src: Path) -> tuple[str, list[Camera], list[Camera]]:
     if len(cams) < 2:
         raise ClrefractError(f"{src / single}: need at least 2 frames, found {len(cams)}")
     # as a dataset folder with only transforms.json splits it
-    return "instant-ngp", *holdout_split(cams, DEFAULT_HOLDOUT)
+    return "instant-ngp", *holdout_split(cams, DEFAULT_HOLDOUT), src / single
 
 
 def _scaled(cam: Camera, scale: float) -> Camera:
@@ -86,11 +92,48 @@ def _copy_file(src_root: Path, rel: str, out: Path, suffix_hint: str) -> str:
     return rel
 
 
-def _parse_box(values: list[float] | None, scale: float) -> Box | None:
-    if values is None:
+# instant-ngp's defaults (nerf_loader.cu: NERF_SCALE, offset 0.5, aabb_scale 1)
+NGP_KEYS = {"scale": 0.33, "offset": [0.5, 0.5, 0.5], "aabb_scale": 1}
+
+
+def _ngp_keys(path: Path) -> dict | None:
+    """aabb_scale, scale and offset of an instant-ngp transforms.json (instant-ngp's default
+    for each one missing); None where it sets none of them."""
+    top = json.loads(path.read_text(encoding="utf-8"))  # load_transforms read it already
+    if not any(k in top for k in NGP_KEYS):
         return None
-    lo, hi = np.array(values[:3]) * scale, np.array(values[3:]) * scale
-    return Box(tuple(lo), tuple(hi), default_margin(lo, hi))
+    keys = {k: top.get(k, v) for k, v in NGP_KEYS.items()}
+    if finite_numbers([keys["offset"]], 1):  # one number: the same on every axis
+        keys["offset"] = [keys["offset"]] * 3
+    sizes = [keys["scale"], keys["aabb_scale"]]
+    if not (finite_numbers(sizes, 2) and min(sizes) > 0 and finite_numbers(keys["offset"], 3)):
+        raise ClrefractError(
+            f"{path}: 'scale' and 'aabb_scale' must be positive numbers and 'offset' a number "
+            f"or 3 numbers, got {[top.get(k) for k in NGP_KEYS]}"
+        )
+    return keys
+
+
+def ngp_box(keys: dict, cams: list[Camera], scale: float, where: str) -> tuple[Box, str]:
+    """instant-ngp's box in the poses' units times `scale` (mm). instant-ngp maps a position p
+    of transforms.json to p * scale + offset (then cycles the axes, which a cube centred on
+    (0.5, 0.5, 0.5) does not see) and traces the cube of side aabb_scale about (0.5, 0.5, 0.5)
+    (docs/nerf_dataset_tips.md, nerf_loader.h); so p spans (0.5 -+ aabb_scale / 2 - offset)
+    / scale. aabb_scale > 1 takes in the background, which here is the environment map: where
+    that cube holds a camera, the unit cube (aabb_scale 1, the object of interest) is used."""
+    off = np.asarray(keys["offset"], float)
+    eyes = np.array([c.c2w[:3, 3] for c in cams])
+    for a in dict.fromkeys([float(keys["aabb_scale"]), 1.0]):
+        lo = (0.5 - a / 2 - off) / keys["scale"] * scale
+        hi = (0.5 + a / 2 - off) / keys["scale"] * scale
+        if not np.any(np.all((eyes > lo) & (eyes < hi), axis=1)):
+            return Box(
+                tuple(lo), tuple(hi), default_margin(lo, hi)
+            ), f"instant-ngp aabb_scale {a:g}"
+    raise ClrefractError(
+        f"{where}: instant-ngp's box (scale {keys['scale']}, offset {keys['offset']}, even at "
+        "aabb_scale 1) holds cameras; give the object's box with --box"
+    )
 
 
 def import_capture(
@@ -107,7 +150,7 @@ def import_capture(
         raise ClrefractError(f"--scale must be a positive number (mm per unit), got {scale}")
     if not 1.0 <= eta_range[0] < eta_range[1]:
         raise ClrefractError(f"--eta-range must be lo hi with 1 <= lo < hi, got {eta_range}")
-    layout, train, test = _layout(src)
+    layout, train, test, single = _layout(src)
     root = src if src.is_dir() else src.parent
     clash = [name for name in WRITES if (out / name).exists()]
     if clash:
@@ -119,15 +162,26 @@ def import_capture(
         raise ClrefractError(
             f"{env}: environment map not found; give the HDR panorama with --envmap"
         )
+    cams = {"train": [_scaled(c, scale) for c in train], "test": [_scaled(c, scale) for c in test]}
+    everyone = cams["train"] + cams["test"]
+    ngp = _ngp_keys(single) if single is not None else None
+    if box is not None:
+        the_box, box_source = box_of(box, scale), "--box"
+    elif ngp is not None:
+        the_box, box_source = ngp_box(ngp, everyone, scale, str(single))
+    else:
+        the_box, box_source = box_from_cameras(everyone, str(src)), "the cameras"
     ensure_out_dir(out, "dataset folder")
     hint = frame_suffix(root, train + test)
-    cams = {"train": [_scaled(c, scale) for c in train], "test": [_scaled(c, scale) for c in test]}
     for split in cams.values():
-        for cam in split:
+        for k, cam in enumerate(split):
+            folder_mask = None if cam.mask_path else mask_file(root, cam, k)
             cam.file_path = _copy_file(root, cam.file_path, out, hint)
             if cam.mask_path:
                 cam.mask_path = _copy_file(root, cam.mask_path, out, ".png")
-    the_box = _parse_box(box, scale) or box_from_cameras(cams["train"] + cams["test"], str(src))
+            elif folder_mask is not None:  # masks/<frame>: the same name beside the copy
+                (out / MASK_DIR).mkdir(exist_ok=True)
+                shutil.copyfile(folder_mask, out / MASK_DIR / folder_mask.name)
     shutil.copyfile(env, out / "envmap.exr")
     save_transforms(out / "transforms_train.json", cams["train"])
     save_transforms(out / "transforms_test.json", cams["test"])
@@ -135,7 +189,14 @@ def import_capture(
         box=the_box,
         eta_range=tuple(eta_range),
         frames=hint,
-        extra={"import": {"source": str(src.resolve()), "layout": layout, "scale": scale}},
+        extra={
+            "import": {
+                "source": str(src.resolve()),
+                "layout": layout,
+                "scale": scale,
+                "box_from": box_source,
+            }
+        },
     )
     write_scene(out, scene)
     return {
@@ -144,5 +205,6 @@ def import_capture(
         "test": len(cams["test"]),
         "frames": hint,
         "box": the_box.to_dict(),
+        "box_from": box_source,
         "scale": scale,
     }

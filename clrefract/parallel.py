@@ -190,7 +190,7 @@ class ShardedEngine:
         from .gradient import GradientResult
 
         n, c = len(origins), self.chunks
-        if (n // group) % c:
+        if group > 1 and (n // group) % c:
             raise ValueError(f"{n // group} ray groups do not split into {c} chunks")
         edges = np.arange(c + 1) * n // c  # fixed by the batch alone, not by the ranks
         n_par = len(self.engine.field.data())

@@ -141,10 +141,11 @@ def _guarded(result: dict, what: str, fn):
         return None
 
 
-def score_field(fit, field=None, out_dir: Path | None = None) -> dict:
+def score_field(fit, field=None, out_dir: Path | None = None, surface: Path | None = None) -> dict:
     """Test-view PSNR and SSIM, eta RMSE and chamfer distance of a field (default: the
-    fit's) on the fit's dataset. Each score that cannot be had is None, and its failure is
-    listed in "scoring_errors"."""
+    fit's) on the fit's dataset; with `surface`, the extracted surface is written there as a
+    mesh. Each score that cannot be had is None, and its failure is listed in
+    "scoring_errors"."""
     field = field or fit.field
     result: dict = {"test_psnr": None, "test_ssim": None, "views": []}
     # evaluates eta on the device too: hash grids are slow in NumPy
@@ -167,11 +168,32 @@ def score_field(fit, field=None, out_dir: Path | None = None) -> dict:
             "eta RMSE",
             lambda: eta_rmse(field, truth, fit.ds.box, eval_fn=tracer.eval_field),
         )
-    chamfer = _guarded(
-        result, "chamfer", lambda: surface_chamfer(field, fit.ds, eval_fn=tracer.eval_field)
+    # first: a bad ground-truth file is reported even when there is no surface
+    truth_mesh = _guarded(result, "chamfer", lambda: ground_truth_mesh(fit.ds))
+    if truth_mesh is None and surface is None:
+        return result
+    from .metrics import chamfer_distance, eta_surface
+
+    level = surface_level(fit.ds)
+    extracted = _guarded(
+        result,
+        "surface",
+        lambda: (eta_surface(field, fit.ds.box, level, eval_fn=tracer.eval_field),),
     )
-    if chamfer is not None:  # inf: eta never reaches the level, there is no surface
-        result["chamfer_mm"] = chamfer if np.isfinite(chamfer) else None
+    mesh = extracted[0] if extracted else None
+    if extracted and mesh is None:  # not a failure: eta never reaches the level
+        result["surface_note"] = f"eta never crosses {level:.4g}: no surface"
+        if truth_mesh is not None:
+            result["chamfer_mm"] = None
+    if mesh is not None and truth_mesh is not None:
+        result["chamfer_mm"] = _guarded(
+            result, "chamfer", lambda: chamfer_distance(mesh, truth_mesh)
+        )
+    if mesh is not None and surface is not None:
+        from .mesh import write_mesh
+
+        if _guarded(result, surface.name, lambda: write_mesh(surface, *mesh) or True):
+            result["surface"] = surface.name
     return result
 
 
@@ -180,19 +202,29 @@ def _warn(fit, scores: dict) -> None:
         fit.stream.write(f"warning: scoring failed, {line}\n")
 
 
-def surface_chamfer(field, ds, eval_fn=None) -> float | None:
-    """Chamfer distance (mm) from the surface of eta halfway between 1 and the scene's upper
-    index to the dataset's ground-truth surface; None without one (or without a crossing:
-    then the surface is missing, and inf is returned)."""
+def surface_level(ds) -> float:
+    """The eta of the extracted surface: halfway between 1 and the scene's upper index."""
+    return 1 + (ds.scene.eta_range[1] - 1) / 2
+
+
+def ground_truth_mesh(ds):
+    """The dataset's ground-truth surface (verts, faces), or None without one."""
     from .mesh import read_mesh
-    from .metrics import chamfer_distance, eta_surface
 
     gt = ds.root / ds.scene.ground_truth.get("surface", "gt_surface.ply")
-    if not gt.is_file():
+    return read_mesh(gt) if gt.is_file() else None
+
+
+def surface_chamfer(field, ds, eval_fn=None) -> float | None:
+    """Chamfer distance (mm) from the surface of eta at surface_level to the dataset's
+    ground-truth surface; None without one (or without a crossing: then the surface is
+    missing, and inf is returned)."""
+    from .metrics import chamfer_distance, eta_surface
+
+    truth = ground_truth_mesh(ds)
+    if truth is None:
         return None
-    truth = read_mesh(gt)  # first: a bad file is reported even when there is no surface
-    level = 1 + (ds.scene.eta_range[1] - 1) / 2
-    mesh = eta_surface(field, ds.box, level, eval_fn=eval_fn)
+    mesh = eta_surface(field, ds.box, surface_level(ds), eval_fn=eval_fn)
     if mesh is None:
         return float("inf")
     return chamfer_distance(mesh, truth)
@@ -233,7 +265,7 @@ def write_fit_report(fit) -> dict:
         "slices.png",
         lambda: plot_slices(fit.field, fit.ds.box, out / "slices.png", truth=scene_truth(fit.ds)),
     )
-    scores = score_field(fit, out_dir=out / "test")
+    scores = score_field(fit, out_dir=out / "test", surface=out / "surface.ply")
     errors = result.pop("scoring_errors", []) + scores.pop("scoring_errors", [])
     result.update(scores)
     start = out / "start.json"

@@ -407,3 +407,96 @@ def test_bad_exposure_and_mask(ds, tmp_path, capsys):
     tf.write_text(good)
     _edit_json(tf, lambda d: d["frames"][0].update(mask_path="masks/none.png"))
     _fit_refuses(capsys, root, tmp_path, "none.png", "mask file not found")
+
+
+# ---- --box, the start, surfaces -----------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "box, needle",
+    [
+        ("1,2,3,4,5", "six numbers"),
+        ("-30,-30,-30,30,30,30,30", "got 7"),
+        ("-30,a,-30,30,30,30", "'a' is not a number"),
+        ("-30,-30,-30,30,nan,30", "finite"),
+        ("-30,-30,30,30,30,30", "zmin must be below zmax, got 30 >= 30"),
+        ("30,-30,-30,-30,30,30", "xmin must be below xmax"),
+    ],
+)
+def test_bad_box_strings(ds, tmp_path, capsys, box, needle):
+    refused(capsys, ["fit", ds, "--out", tmp_path / "run", "--box", box, *TINY_FIT], needle)
+    refused(capsys, ["dataset", "check", ds, "--box", box], "--box", needle)
+    out = tmp_path / "imported"
+    refused(capsys, ["dataset", "import", ds, "--out", out, "--box", box], needle)
+
+
+def _empty_masks(root):
+    """User masks that mark nothing: the visual hull of a level-set start is then empty."""
+    import imageio.v3 as iio
+
+    (root / "masks").mkdir()
+    for tf in ("transforms_train.json", "transforms_test.json"):
+        for fr in json.loads((root / tf).read_text())["frames"]:
+            stem = fr["file_path"].split("/")[-1]
+            iio.imwrite(root / "masks" / f"{stem}.png", np.zeros((12, 12), np.uint8))
+
+
+def test_a_failed_start_leaves_no_run_behind(ds, tmp_path, capsys):
+    root = _copy(ds, tmp_path)
+    _empty_masks(root)
+    args = ["fit", root, "--out", tmp_path / "run", *TINY_FIT, "--field", "levelset"]
+    # the folder held the user's file only: it holds just that again (refused() compares)
+    refused(capsys, args, "refraction masks do not agree")
+    fresh = tmp_path / "fresh" / "run"
+    code = main([str(a) for a in ["fit", root, "--out", fresh, *TINY_FIT, "--field", "levelset"]])
+    assert code == 2 and not fresh.exists(), list(fresh.iterdir()) if fresh.exists() else None
+    assert (tmp_path / "fresh").is_dir()  # a folder made by ensure_out_dir's parents: kept
+
+
+def test_fit_box_overrides_the_scene_and_the_surface_is_written(ds, tmp_path, monkeypatch):
+    """--box replaces scene.json's box (the run records it, eval uses it); the surface that
+    the chamfer distance scores is written as surface.ply, the same by fit and eval."""
+    from clrefract.evaluate import evaluate_run
+    from clrefract.fields import load_field_file
+    from clrefract.fit import load_config
+    from clrefract.mesh import read_mesh
+    from clrefract.metrics import eta_surface
+
+    root = _copy(ds, tmp_path)
+    (root / "gt_surface.ply").unlink()  # no chamfer: it is slow on surfaces this far apart
+    run = tmp_path / "run"
+    box = "-40,-38,-36,36,38,40"
+    assert main([str(a) for a in ["fit", root, "--out", run, "--box", box, *TINY_FIT]]) == 0
+    meta = json.loads((run / "run.json").read_text())
+    assert meta["box"]["lo"] == [-40, -38, -36] and meta["box"]["hi"] == [36, 38, 40]
+    assert load_config(run / "config.toml", {}).box == (-40, -38, -36, 36, 38, 40)
+    res = json.loads((run / "results.json").read_text())
+    assert res["surface"] == "surface.ply" and "scoring_errors" not in res, res
+    verts, faces = read_mesh(run / "surface.ply")
+    assert len(faces) > 100
+    assert np.all(verts >= [-40, -38, -36]) and np.all(verts <= [36, 38, 40])
+    # the mesh is marching cubes of the fitted eta halfway to the scene's index, in the box
+    from clrefract.dataset import Dataset
+    from clrefract.fields.base import Box
+    from clrefract.report import surface_level
+
+    field = load_field_file(run / "field.npz", Box.from_dict(meta["box"]))
+    want = eta_surface(field, field.box, surface_level(Dataset(root)))
+    assert len(want[1]) == len(faces) and np.allclose(want[0], verts, atol=1e-3)
+    ev = evaluate_run(run, figures=False, views=1)
+    assert ev["surface"] == "surface.ply"
+    got = read_mesh(run / "eval" / "surface.ply")
+    assert len(got[1]) == len(faces) and np.allclose(got[0], verts, atol=1e-3)
+    # an extraction that fails is named in scoring_errors; the run keeps everything else
+    import clrefract.metrics
+
+    def broken(*a, **k):
+        raise RuntimeError("marching cubes fell over")
+
+    monkeypatch.setattr(clrefract.metrics, "eta_surface", broken)
+    run2 = tmp_path / "run2"
+    assert main([str(a) for a in ["fit", root, "--out", run2, *TINY_FIT, "--init", "empty"]]) == 0
+    res2 = json.loads((run2 / "results.json").read_text())
+    assert "surface: marching cubes fell over" in res2["scoring_errors"], res2
+    assert res2["test_psnr"] is not None and (run2 / "field.npz").is_file()
+    assert not (run2 / "surface.ply").exists()

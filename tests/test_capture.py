@@ -12,6 +12,7 @@ from clrefract.cli import main
 from clrefract.dataset import Dataset, read_scene
 from clrefract.errors import ClrefractError
 from clrefract.imageio import linear_to_srgb, read_exr_rgb, read_photo_rgb
+from clrefract.importer import NGP_KEYS
 from clrefract.synth import MakeOptions, make_dataset
 
 UNIT_MM = 100.0  # the capture's poses are in decimetres, as Blender scenes are about 4 units
@@ -20,7 +21,8 @@ UNIT_MM = 100.0  # the capture's poses are in decimetres, as Blender scenes are 
 def _to_capture(ds, cap, ngp=False):
     """A rendered dataset rewritten the way a NeRF-synthetic (Blender) capture comes: RGBA
     8-bit PNG frames named without extension, poses in decimetres, only camera_angle_x, no
-    scene.json; with ngp, one transforms.json with aabb_scale instead."""
+    scene.json; with ngp, one transforms.json with instant-ngp's aabb_scale, scale and offset
+    instead (its box: -105..95, -100..100, -95..105 mm)."""
     cap.mkdir()
     frames_all = []
     for split in ("train", "test"):
@@ -41,7 +43,8 @@ def _to_capture(ds, cap, ngp=False):
         if not ngp:
             (cap / f"transforms_{split}.json").write_text(json.dumps(top))
     if ngp:
-        top = {"camera_angle_x": tj["camera_angle_x"], "aabb_scale": 4, "frames": frames_all}
+        top = {"camera_angle_x": tj["camera_angle_x"], "frames": frames_all}
+        top.update(aabb_scale=4, scale=2.0, offset=[0.6, 0.5, 0.4])
         (cap / "transforms.json").write_text(json.dumps(top))
     else:
         shutil.copy(cap / "transforms_test.json", cap / "transforms_val.json")
@@ -220,3 +223,113 @@ def test_import_without_test_file_holds_out_and_keeps_mask_names(rendered, tmp_p
     d = Dataset(ds)
     assert not {c.name for c in d.train} & {c.name for c in d.test}
     assert d.mask(d.train[0]).all()  # frame 1 is the first training frame left
+
+
+def test_instant_ngp_box_keys_are_honoured(rendered, tmp_path, capsys):
+    """instant-ngp maps p to p * scale + offset and traces the cube of side aabb_scale about
+    (0.5, 0.5, 0.5): the fixture's keys give -105..95, -100..100, -95..105 mm."""
+    cap = _to_capture(rendered, tmp_path / "ngp", ngp=True)
+    ds = tmp_path / "ds"
+    assert main(["dataset", "import", str(cap), "--out", str(ds), "--scale", str(UNIT_MM)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["box_from"] == "instant-ngp aabb_scale 4"
+    assert np.allclose(info["box"]["lo"], [-105, -100, -95])
+    assert np.allclose(info["box"]["hi"], [95, 100, 105])
+    assert main(["dataset", "check", str(ds)]) == 0
+    assert "OK" in capsys.readouterr().out
+    # aabb_scale 16 takes in the cameras (instant-ngp's background): the unit cube instead
+    tf = cap / "transforms.json"
+    tj = json.loads(tf.read_text())
+    tf.write_text(json.dumps({**tj, "aabb_scale": 16}))
+    assert main(["dataset", "import", str(cap), "--out", str(tmp_path / "d16")]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["box_from"] == "instant-ngp aabb_scale 1"
+    assert np.allclose(info["box"]["lo"], [-0.3, -0.25, -0.2])  # no --scale: poses' units
+    assert np.allclose(info["box"]["hi"], [0.2, 0.25, 0.3])
+    # --box wins, given as one comma-separated string, in the poses' units
+    args = [
+        "--out",
+        str(tmp_path / "dbox"),
+        "--scale",
+        "100",
+        "--box",
+        "-0.3,-0.3,-0.3,0.3,0.3,0.3",
+    ]
+    assert main(["dataset", "import", str(cap), *args]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["box_from"] == "--box" and np.allclose(info["box"]["hi"], [30, 30, 30])
+    # a bad key, and a cube that holds cameras even at aabb_scale 1, are refused
+    tf.write_text(json.dumps({**tj, "scale": -1}))
+    assert main(["dataset", "import", str(cap), "--out", str(tmp_path / "bad")]) == 2
+    assert "'scale' and 'aabb_scale' must be positive" in capsys.readouterr().err
+    tf.write_text(json.dumps({**tj, "scale": 0.1}))
+    assert main(["dataset", "import", str(cap), "--out", str(tmp_path / "bad")]) == 2
+    assert "holds cameras; give the object's box with --box" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+    # without any of the keys: the region the cameras look at, as before
+    tf.write_text(json.dumps({k: v for k, v in tj.items() if k not in NGP_KEYS}))
+    assert main(["dataset", "import", str(cap), "--out", str(tmp_path / "dcam")]) == 0
+    assert json.loads(capsys.readouterr().out)["box_from"] == "the cameras"
+
+
+def _cut_out(png, keep_background: bool):
+    """An RGBA frame whose alpha marks the object (the middle 8 x 8), its background
+    either kept (a matte) or cut away to black (NeRF-synthetic's transparent film)."""
+    img = iio.imread(png)
+    alpha = np.zeros(img.shape[:2], np.uint8)
+    alpha[4:12, 4:12] = 255
+    if not keep_background:
+        img[alpha == 0, :3] = 0
+    img[..., 3] = alpha
+    iio.imwrite(png, img)
+    return alpha > 127
+
+
+def test_alpha_is_the_mask_and_a_cut_away_background_is_refused(rendered, tmp_path, capsys):
+    from clrefract.fit import Fit, load_config
+
+    cap = _to_capture(rendered, tmp_path / "capture")
+    matte = _cut_out(cap / "train" / "r_001.png", keep_background=True)
+    d = Dataset(cap)
+    first, second = d.train[0], d.train[1]
+    assert d.has_mask(first) and np.array_equal(d.mask(first), matte)
+    assert not d.has_mask(second)  # opaque everywhere: no mask
+    rgb, _ = read_photo_rgb(cap / "train" / "r_001.png")
+    assert np.array_equal(d.image(first), rgb)  # RGB as stored, not premultiplied
+    fit = Fit(cap, tmp_path / "run", load_config(None, {"res": 8}))
+    assert np.array_equal(fit._refraction_masks()[0], matte)
+    assert main(["dataset", "check", str(cap)]) == 0
+    capsys.readouterr()
+    # the background cut away: no environment to compare with, refused in one line
+    _cut_out(cap / "train" / "r_002.png", keep_background=False)
+    with pytest.raises(ClrefractError, match=r"r_002.png: transparent background \(75%"):
+        Dataset(cap).image(Dataset(cap).train[1])
+    assert main(["dataset", "check", str(cap)]) == 2
+    assert "r_002.png: transparent background" in capsys.readouterr().out
+    args = ["fit", str(cap), "--out", str(tmp_path / "run2"), "--iterations", "1", "--res", "8"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "transparent background" in err
+
+
+def test_masks_folder_is_checked_and_nameless_frames_have_their_own(rendered, tmp_path, capsys):
+    cap = _to_capture(rendered, tmp_path / "capture")
+    (cap / "masks").mkdir()
+    iio.imwrite(cap / "masks" / "r_002.png", np.zeros((5, 5), np.uint8))
+    assert main(["dataset", "check", str(cap)]) == 2
+    assert "masks/r_002.png: mask is 5x5 but its camera says 16x16" in capsys.readouterr().out
+    (cap / "masks" / "r_002.png").unlink()
+    iio.imwrite(cap / "masks" / "r_001.png", np.full((16, 16), 255, np.uint8))
+    out = tmp_path / "ds"  # the import takes masks/<frame> along
+    assert main(["dataset", "import", str(cap), "--out", str(out), "--scale", "100"]) == 0
+    imported = Dataset(out)
+    assert imported.mask(imported.train[0]).all() and not imported.has_mask(imported.train[1])
+    d = Dataset(cap)
+    for k, cam in enumerate(d.train[:3]):  # frames made without a file or a name
+        cam.file_path = cam.name = ""
+        m = np.zeros((16, 16), np.uint8)
+        m[k] = 255
+        iio.imwrite(cap / "masks" / f"view_{k:03d}.png", m)
+    got = [d.mask(cam) for cam in d.train[:3]]
+    assert [d.mask_path(c).name for c in d.train[:3]] == [f"view_00{k}.png" for k in range(3)]
+    assert [int(np.flatnonzero(g.any(1))[0]) for g in got] == [0, 1, 2]

@@ -99,8 +99,30 @@ def test_dataset_check_cli_exit_codes(sphere_ds, tmp_path, capsys):
     root, _ = sphere_ds
     assert main(["dataset", "check", str(root)]) == 0
     assert "OK" in capsys.readouterr().out
-    assert main(["dataset", "check", str(tmp_path / "nowhere")]) == 1
+    assert main(["dataset", "check", str(tmp_path / "nowhere")]) == 2  # bad input
     assert "not found" in capsys.readouterr().out
+
+
+def test_dataset_check_box_option(sphere_ds, tmp_path, capsys):
+    """--box replaces scene.json's box (and the cameras' without one), and check says so."""
+    root, _ = sphere_ds
+    assert main(["dataset", "check", str(root), "--box", "-30,-30,-30,30,30,30"]) == 0
+    out = capsys.readouterr().out
+    assert "box from --box: [-30, -30, -30] to [30, 30, 30] mm, margin 4" in out
+    # a box far from where the cameras look: every camera is named, status 2
+    assert (
+        main(["dataset", "check", str(root), "--box", "500", "500", "500", "600", "600", "600"])
+        == 2
+    )
+    out = capsys.readouterr().out
+    assert out.count("camera does not look at the box") == 10 and "box from --box" in out
+    bare = tmp_path / "bare"
+    shutil.copytree(root, bare)
+    (bare / "scene.json").unlink()
+    assert main(["dataset", "check", str(bare), "--box=-30,-30,-30,30,30,30"]) == 0
+    out = capsys.readouterr().out
+    assert "box from --box" in out and "box from the cameras" not in out
+    assert "assumed box" not in out and "assumed no scene.json" in out
 
 
 def test_render_accepts_a_dataset(sphere_ds, tmp_path):
