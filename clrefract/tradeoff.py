@@ -96,22 +96,6 @@ def bundle(n: int, radius: float = 18.0, seed: int = 0):
     return np.column_stack([np.full(n, -120.0), yz]), np.tile([1.0, 0.0, 0.0], (n, 1))
 
 
-def smooth_env(width: int = 1024):
-    """A smooth analytic environment: losses smooth enough for finite differences."""
-    from .envmap import EnvMap, pixel_directions
-
-    d = pixel_directions(width, width // 2)
-    img = np.stack(
-        [
-            1 + 0.5 * np.sin(3 * d[..., 0] + 1) * np.cos(2 * d[..., 2]),
-            1 + 0.5 * np.cos(4 * d[..., 1]),
-            1 + 0.3 * d[..., 2],
-        ],
-        -1,
-    )
-    return EnvMap(img * 0.4)
-
-
 class Scene:
     """One field with its references: exit directions of the bundle, one rendered view,
     and (fields with parameters) the loss setting of the gradient check."""
@@ -150,12 +134,13 @@ class Scene:
         bump's own rendering, the direction the bump itself, and the float64 finite
         difference of the loss at a quarter of the finest step."""
         if self.grad is None:
+            from .gradcheck import smooth_env
             from .gradient import traced_loss
 
             truth = np.array(self.field.data(), np.float64)
             u = (truth - 1) / np.abs(truth - 1).max()
             p0 = truth - 0.3 * (truth - 1)
-            env = smooth_env()
+            env = smooth_env(1024)
             fine = self.tracer(integrator="rkn4", step=finest / 4, precision="float64")
             target = env.lookup(fine.trace(self.o, self.d).direction)
 

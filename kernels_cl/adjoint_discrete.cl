@@ -26,33 +26,8 @@
 #error "the discrete adjoint reverses INTEGRATOR_RKN4 steps"
 #endif
 
-/* One RKN4 step as ode_incr computes it (the same expressions, so the same rounding):
- * the increments, and the points of its second and third stages (what its reversal needs
- * besides x). */
 #define SCRATCH_COLS 9 /* per replayed step: x, the second and the third stage's points */
 #define DISCRETE_INLINE inline __attribute__((always_inline))
-
-DISCRETE_INLINE void rkn4_incr_stages(FIELD_PARAMS, const REAL hh, realv x, realv y, realv z, realv vx,
-                             realv vy, realv vz, realv *ix, realv *iy, realv *iz, realv *ivx,
-                             realv *ivy, realv *ivz, realv *P) {
-    const realv h = RV(hh), h2 = RV(0.5) * h, h8 = RV(0.125) * h;
-    realv ax, ay, az, bx, by, bz, cx, cy, cz;
-    field_D(FIELD_ARGS, RV(-2), x, y, z, &ax, &ay, &az);
-    ax *= h; ay *= h; az *= h;
-    P[0] = x + h2 * vx + h8 * ax; P[1] = y + h2 * vy + h8 * ay; P[2] = z + h2 * vz + h8 * az;
-    field_D(FIELD_ARGS, RV(-2), P[0], P[1], P[2], &bx, &by, &bz);
-    bx *= h; by *= h; bz *= h;
-    P[3] = x + h * vx + h2 * bx; P[4] = y + h * vy + h2 * by; P[5] = z + h * vz + h2 * bz;
-    field_D(FIELD_ARGS, RV(-2), P[3], P[4], P[5], &cx, &cy, &cz);
-    cx *= h; cy *= h; cz *= h;
-    const REAL s = (REAL)1 / (REAL)6;
-    *ix = h * (vx + s * (ax + RV(2) * bx));
-    *iy = h * (vy + s * (ay + RV(2) * by));
-    *iz = h * (vz + s * (az + RV(2) * bz));
-    *ivx = s * (ax + RV(4) * bx + cx);
-    *ivy = s * (ay + RV(4) * by + cy);
-    *ivz = s * (az + RV(4) * bz + cz);
-}
 
 /* Reverse one RKN4 step that started at X = P[0..2] with stage points Xb = P[3..5],
  * Xc = P[6..8]: (xb, vb) holds the cotangent of the step's end on entry and of its start on
@@ -151,8 +126,8 @@ __kernel void adjoint_discrete(FIELD_PARAMS, const REAL h, __global const REAL *
             Q[0] = x; Q[1] = y; Q[2] = z;
             maskv live = RV(s) < n;
             realv ix, iy, iz, ivx, ivy, ivz;
-            rkn4_incr_stages(FIELD_ARGS, h, x, y, z, vx, vy, vz, &ix, &iy, &iz, &ivx, &ivy,
-                             &ivz, Q + 3);
+            rkn4_incr(FIELD_ARGS, RV(h), RV(-2), x, y, z, vx, vy, vz, &ix, &iy, &iz, &ivx,
+                      &ivy, &ivz, Q + 3);
             __global REAL *c = scratch + (size_t)(s - s0) * SCRATCH_COLS * col;
             for (int a = 0; a < SCRATCH_COLS; ++a)
                 VSTORE(Q[a], i, c + a * col);

@@ -70,6 +70,36 @@ inline void ode_dopri(FIELD_PARAMS, realv h, realv region, realv x, realv y, rea
 }
 #endif
 
+#if defined(INTEGRATOR_RKN4)
+/* One RKN4 step's increments; P (or 0) receives the points of its second and third stages,
+ * which the discrete adjoint (adjoint_discrete.cl) replays with this very arithmetic. */
+inline void rkn4_incr(FIELD_PARAMS, realv h, realv region, realv x, realv y, realv z, realv vx,
+                      realv vy, realv vz, realv *ix, realv *iy, realv *iz, realv *ivx, realv *ivy,
+                      realv *ivz, realv *P) {
+    realv ax, ay, az, bx, by, bz, cx, cy, cz;
+    field_D(FIELD_ARGS, region, x, y, z, &ax, &ay, &az);
+    ax *= h; ay *= h; az *= h;
+    realv h2 = RV(0.5) * h, h8 = RV(0.125) * h;
+    realv bpx = x + h2 * vx + h8 * ax, bpy = y + h2 * vy + h8 * ay, bpz = z + h2 * vz + h8 * az;
+    field_D(FIELD_ARGS, region, bpx, bpy, bpz, &bx, &by, &bz);
+    bx *= h; by *= h; bz *= h;
+    realv cpx = x + h * vx + h2 * bx, cpy = y + h * vy + h2 * by, cpz = z + h * vz + h2 * bz;
+    field_D(FIELD_ARGS, region, cpx, cpy, cpz, &cx, &cy, &cz);
+    cx *= h; cy *= h; cz *= h;
+    if (P) {
+        P[0] = bpx; P[1] = bpy; P[2] = bpz;
+        P[3] = cpx; P[4] = cpy; P[5] = cpz;
+    }
+    const REAL s = (REAL)1 / (REAL)6;
+    *ix = h * (vx + s * (ax + RV(2) * bx));
+    *iy = h * (vy + s * (ay + RV(2) * by));
+    *iz = h * (vz + s * (az + RV(2) * bz));
+    *ivx = s * (ax + RV(4) * bx + cx);
+    *ivy = s * (ay + RV(4) * by + cy);
+    *ivz = s * (az + RV(4) * bz + cz);
+}
+#endif
+
 /* One step's increments (dx, dv) from (x, v); h per lane (interface steps shorten it). The
  * caller adds them (with compensated summation in trace_rays: at 1e-3 mm steps, float32
  * x + h v would lose the increment's low bits on every step). */
@@ -79,23 +109,7 @@ inline void ode_incr(FIELD_PARAMS, realv h, realv region, realv x0, realv y0, re
     realv x_ = x0, y_ = y0, z_ = z0, vx_ = vx0, vy_ = vy0, vz_ = vz0;
     realv *x = &x_, *y = &y_, *z = &z_, *vx = &vx_, *vy = &vy_, *vz = &vz_;
 #if defined(INTEGRATOR_RKN4)
-    realv ax, ay, az, bx, by, bz, cx, cy, cz;
-    field_D(FIELD_ARGS, region, *x, *y, *z, &ax, &ay, &az);
-    ax *= h; ay *= h; az *= h;
-    realv h2 = RV(0.5) * h, h8 = RV(0.125) * h;
-    field_D(FIELD_ARGS, region, *x + h2 * *vx + h8 * ax, *y + h2 * *vy + h8 * ay,
-            *z + h2 * *vz + h8 * az, &bx, &by, &bz);
-    bx *= h; by *= h; bz *= h;
-    field_D(FIELD_ARGS, region, *x + h * *vx + h2 * bx, *y + h * *vy + h2 * by, *z + h * *vz + h2 * bz,
-            &cx, &cy, &cz);
-    cx *= h; cy *= h; cz *= h;
-    const REAL s = (REAL)1 / (REAL)6;
-    *ix = h * (*vx + s * (ax + RV(2) * bx));
-    *iy = h * (*vy + s * (ay + RV(2) * by));
-    *iz = h * (*vz + s * (az + RV(2) * bz));
-    *ivx = s * (ax + RV(4) * bx + cx);
-    *ivy = s * (ay + RV(4) * by + cy);
-    *ivz = s * (az + RV(4) * bz + cz);
+    rkn4_incr(FIELD_ARGS, h, region, *x, *y, *z, *vx, *vy, *vz, ix, iy, iz, ivx, ivy, ivz, 0);
 #elif defined(INTEGRATOR_RK4)
     realv h2 = RV(0.5) * h;
     realv k1x, k1y, k1z, k2x, k2y, k2z, k3x, k3y, k3z, k4x, k4y, k4z;

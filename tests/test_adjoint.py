@@ -3,28 +3,14 @@ renderer (float64), its convergence with the step, memory, and queue independenc
 
 import numpy as np
 import pytest
-from fdcheck import directional_errors, smooth_env
 
 from clrefract.fields.base import Box
 from clrefract.fields.voxel import VoxelGrid
+from clrefract.gradcheck import directional_errors, lens_scene, smooth_env
 from clrefract.gradient import GradientEngine
 from clrefract.runtime import Runtime
 
 BOX = Box(margin=4.0)
-
-
-def voxel_scene(n_rays=300, res=12, seed=0):
-    rng = np.random.default_rng(seed)
-    ax = np.linspace(-50, 50, res)
-    X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
-    vals = 1 + 0.3 * np.exp(-(X**2 + Y**2 + Z**2) / (2 * 18**2))
-    vals += 0.02 * rng.normal(size=X.shape)
-    o = np.column_stack([rng.uniform(-30, 30, (n_rays, 2)), np.full(n_rays, -150.0)])
-    d = np.column_stack([rng.normal(0, 0.05, (n_rays, 2)), np.ones(n_rays)])
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    env = smooth_env()
-    target = env.lookup(d + rng.normal(0, 0.02, d.shape)).astype(np.float64)
-    return vals, o, d, env, target
 
 
 def fd_errors(interp, step, n_dirs=3, seed=1, checkpoint_every=0, eps=1e-6, z_nodes=None):
@@ -32,7 +18,7 @@ def fd_errors(interp, step, n_dirs=3, seed=1, checkpoint_every=0, eps=1e-6, z_no
     eps: 1e-6 lets some exit directions cross a texel edge of the bilinear environment (a
     kink in the loss), a floor of ~5e-5 under the error; 1e-7 goes below it.
     z_nodes: keep only these z-planes of the scene's grid."""
-    vals, o, d, env, target = voxel_scene()
+    vals, o, d, env, target = lens_scene()
     if z_nodes is not None:
         vals = np.ascontiguousarray(vals[:, :, z_nodes])
     field = VoxelGrid(vals, BOX, interp)
@@ -97,7 +83,7 @@ def test_trilinear_grid_misses_the_face_hessian():
 
 
 def test_gradient_does_not_depend_on_the_number_of_queues():
-    vals, o, d, env, target = voxel_scene(n_rays=500)
+    vals, o, d, env, target = lens_scene(n_rays=500)
     grads = []
     for q in (1, 3):
         rt = Runtime(queues=q)
@@ -125,7 +111,7 @@ def test_device_buffers_do_not_grow_with_the_step_count(precision, monkeypatch):
             else real(ctx, flags, hostbuf=hostbuf)
         )
 
-    vals, o, d, env, target = voxel_scene(n_rays=200)
+    vals, o, d, env, target = lens_scene(n_rays=200)
     totals = []
     for step in (2.0, 0.25):
         eng = GradientEngine(VoxelGrid(vals, BOX), BOX, step=step, precision=precision)
@@ -157,7 +143,7 @@ def test_bspline_voxel_adjoint_matches_finite_differences_and_converges_with_ste
 def test_bspline_adjoint_is_the_same_for_every_lane_width_and_precision():
     """64-tap private accumulators with LANES = 1, 4, 8 (float64) and 1, 16 (float32, the CPU
     default): the same gradient up to rounding; the clamped border nodes get splats too."""
-    vals, o, d, env, target = voxel_scene(n_rays=500)
+    vals, o, d, env, target = lens_scene(n_rays=500)
     grads = {}
     for precision, lanes in [("float64", 4), ("float64", 1), ("float64", 8), ("float32", 16)]:
         eng = GradientEngine(

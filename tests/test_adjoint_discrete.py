@@ -8,11 +8,11 @@ discretisation error at step 2 (1e-4 to 5e-4, measured)."""
 
 import numpy as np
 import pytest
-from fdcheck import directional_errors
-from test_adjoint import BOX, voxel_scene
+from test_adjoint import BOX
 
 from clrefract.errors import ClrefractError
 from clrefract.fields.voxel import VoxelGrid
+from clrefract.gradcheck import directional_errors, lens_scene, smooth_env
 from clrefract.gradient import GradientEngine, backward_state_bytes, discrete_segment
 from clrefract.tracer import Tracer
 
@@ -20,7 +20,7 @@ EXACT = 1e-6
 
 
 def fd_check(mode, interp="smoothstep", step=2.0, every=0, lanes=4, n_rays=100):
-    vals, o, d, env, target = voxel_scene(n_rays=n_rays)
+    vals, o, d, env, target = lens_scene(n_rays=n_rays)
     eng = GradientEngine(
         VoxelGrid(vals, BOX, interp),
         BOX,
@@ -64,7 +64,7 @@ def test_trilinear_gradient_is_exact_between_face_crossings():
     """C0 trilinear weights: grad eta jumps at cell faces, so the discrete renderer jumps
     where a stage point crosses one; with a perturbation too small to cross any (eps 1e-8
     here) the discrete adjoint is its exact derivative."""
-    vals, o, d, env, target = voxel_scene(n_rays=100)
+    vals, o, d, env, target = lens_scene(n_rays=100)
     eng = GradientEngine(
         VoxelGrid(vals, BOX, "trilinear"),
         BOX,
@@ -92,7 +92,7 @@ def test_checkpoint_memory(monkeypatch):
     assert discrete_segment(1000) == 32 and discrete_segment(1024) == 32
     assert discrete_segment(1025) == 33 and discrete_segment(1) == 1
 
-    vals, o, d, env, target = voxel_scene(n_rays=64)
+    vals, o, d, env, target = lens_scene(n_rays=64)
     sizes = []
     real = cl.Buffer
 
@@ -125,7 +125,7 @@ def test_checkpoint_memory(monkeypatch):
 
 
 def test_bad_adjoint_options_are_refused():
-    vals = voxel_scene(n_rays=1)[0]
+    vals = lens_scene(n_rays=1)[0]
     with pytest.raises(ClrefractError, match="adjoint must be one of"):
         GradientEngine(VoxelGrid(vals, BOX), BOX, adjoint="exact")
     with pytest.raises(ClrefractError, match="reverses rkn4 steps"):
@@ -168,7 +168,7 @@ def test_growth_cap_truncates_the_discrete_adjoint():
     """growth_max stops a ray's reversal once |vbar| grew past it, as in the continuous pass:
     a cap of 1 keeps only the steps before any growth, so the gradient changes; growth
     reports max |vbar| / |vbar(T)| >= 1."""
-    vals, o, d, env, target = voxel_scene(n_rays=100)
+    vals, o, d, env, target = lens_scene(n_rays=100)
     out = {}
     for cap in (0.0, 1.0):
         eng = GradientEngine(
@@ -215,7 +215,6 @@ def test_tiny_fit_with_the_discrete_adjoint(tmp_path):
 def test_levelset_discrete_adjoint_matches_finite_differences():
     """A level set (B-spline distances and one shared index n, summed per work-item):
     distance and index directions; measured 4e-10 and 3e-10 at eps 1e-6."""
-    from fdcheck import smooth_env
     from test_levelset import BOX as LBOX
     from test_levelset import ellipsoid
 

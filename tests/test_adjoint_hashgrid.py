@@ -6,12 +6,12 @@ import io
 
 import numpy as np
 import pytest
-from fdcheck import directional_errors, smooth_env
 
 from clrefract.fields import load_field_file
 from clrefract.fields.base import Box
 from clrefract.fields.hashgrid import HashGridConfig, HashGridField
 from clrefract.fit import Fit, load_config
+from clrefract.gradcheck import directional_errors, smooth_env
 from clrefract.gradient import GradientEngine
 from clrefract.runtime import Runtime
 

@@ -5,12 +5,12 @@ import json
 
 import numpy as np
 import pytest
-from fdcheck import directional_errors, smooth_env
 
 from clrefract.errors import ClrefractError
 from clrefract.fields import load_field_file
 from clrefract.fields.base import Box
 from clrefract.fields.levelset import LevelSetField
+from clrefract.gradcheck import directional_errors, smooth_env
 from clrefract.gradient import GradientEngine
 from clrefract.tracer import Tracer
 

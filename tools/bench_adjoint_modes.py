@@ -16,65 +16,27 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from clrefract.envmap import EnvMap, pixel_directions  # noqa: E402
 from clrefract.fields.base import Box  # noqa: E402
 from clrefract.fields.voxel import VoxelGrid  # noqa: E402
+from clrefract.gradcheck import directional_errors, lens_scene  # noqa: E402
 from clrefract.gradient import GradientEngine  # noqa: E402
-from clrefract.loss import photometric_loss  # noqa: E402
 
 BOX = Box(margin=4.0)
 
 
-def scene(n_rays: int, res: int = 12, seed: int = 0):
-    """A Gaussian lens with noise on a res^3 grid, rays along +z, a smooth environment."""
-    rng = np.random.default_rng(seed)
-    ax = np.linspace(-50, 50, res)
-    X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
-    vals = 1 + 0.3 * np.exp(-(X**2 + Y**2 + Z**2) / (2 * 18**2))
-    vals += 0.02 * rng.normal(size=X.shape)
-    o = np.column_stack([rng.uniform(-30, 30, (n_rays, 2)), np.full(n_rays, -150.0)])
-    d = np.column_stack([rng.normal(0, 0.05, (n_rays, 2)), np.ones(n_rays)])
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    px = pixel_directions(2048, 1024)
-    img = np.stack(
-        [
-            1 + 0.5 * np.sin(3 * px[..., 0] + 1) * np.cos(2 * px[..., 2]),
-            1 + 0.5 * np.cos(4 * px[..., 1]),
-            1 + 0.3 * px[..., 2],
-        ],
-        -1,
-    )
-    env = EnvMap(0.4 * img)
-    target = env.lookup(d + rng.normal(0, 0.02, d.shape)).astype(np.float64)
-    return vals, o, d, env, target
-
-
 def fd_agreement(mode: str, step: float, interp: str, n_dirs: int = 3, eps: float = 1e-7):
     """Relative errors of <g, u> against central differences of the forward loss."""
-    vals, o, d, env, target = scene(100)
+    vals, o, d, env, target = lens_scene(100)
     eng = GradientEngine(
         VoxelGrid(vals, BOX, interp), BOX, step=step, precision="float64", lanes=4, adjoint=mode
     )
     g = eng.loss_and_grad(o, d, target, env).grad
-    p0 = vals.ravel().copy()
-
-    def loss(p):
-        eng.set_params(p)
-        tr = eng.tracer.trace(o, d)
-        w = (tr.status == 0).astype(float)
-        return photometric_loss(env, tr.last_velocity, target, weight=w)[0]
-
-    rng = np.random.default_rng(1)
-    errs = []
-    for _ in range(n_dirs):
-        u = rng.normal(size=p0.shape)
-        fd = (loss(p0 + eps * u) - loss(p0 - eps * u)) / (2 * eps)
-        errs.append(abs(fd - g @ u) / abs(fd))
-    return errs
+    dirs = np.random.default_rng(1).normal(size=(n_dirs, g.size))
+    return directional_errors(eng, o, d, env, target, g, vals.ravel().copy(), dirs, eps).tolist()
 
 
 def timing(mode: str, every: int, n_rays: int, step: float, repeats: int):
-    vals, o, d, env, target = scene(n_rays, res=32)
+    vals, o, d, env, target = lens_scene(n_rays, res=32)
     eng = GradientEngine(
         VoxelGrid(vals, BOX, "bspline"), BOX, step=step, adjoint=mode, checkpoint_every=every
     )
