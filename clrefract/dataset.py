@@ -303,9 +303,10 @@ def image_path(root: Path, rel: str, suffix: str) -> Path:
     return p if p.suffix.lower() in IMAGE_SUFFIXES else p.with_name(p.name + suffix)
 
 
-def read_frame_image(path: Path, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """A frame's linear image (times its exposure) and the loss weight of each pixel (0 where
-    the photograph clipped: its radiance is unknown), checked against its camera."""
+def read_frame_image(path: Path, cam: Camera):
+    """A frame's linear image (times its exposure), the loss weight of each pixel (0 where
+    the photograph clipped: its radiance is unknown), checked against its camera, and its
+    alpha (None without one)."""
     img, clipped, alpha = read_frame_rgba(path)
     if img.shape[:2] != (cam.height, cam.width):
         raise ClrefractError(
@@ -318,7 +319,7 @@ def read_frame_image(path: Path, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
     weight = np.ones(img.shape[:2], np.float32)
     if clipped is not None:
         weight[clipped] = 0.0
-    return img * np.float32(cam.exposure), weight
+    return img * np.float32(cam.exposure), weight, alpha
 
 
 def check_background(path: Path, img: np.ndarray, alpha: np.ndarray | None) -> None:
@@ -437,7 +438,9 @@ class Dataset:
 
     def frame(self, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
         """Linear image (H, W, 3) and per-pixel loss weights (H, W) of a frame."""
-        return read_frame_image(self.frame_path(cam), cam)
+        img, weight, alpha = read_frame_image(self.frame_path(cam), cam)
+        self._alpha_masks[id(cam)] = alpha_mask(alpha)  # read once: masks come from it too
+        return img, weight
 
     def image(self, cam: Camera) -> np.ndarray:
         return self.frame(cam)[0]
