@@ -120,6 +120,8 @@ class GradientEngine:
         checkpoint_every: int = 0,
         growth_max: float = 0.0,
         adjoint: str = "continuous",
+        skip_empty: bool = False,
+        occupancy_res: int = 32,
     ):
         if adjoint not in ADJOINTS:
             raise ClrefractError(f"adjoint must be one of {ADJOINTS}, got {adjoint!r}")
@@ -137,6 +139,8 @@ class GradientEngine:
             max_steps=max_steps,
             runtime=self.runtime,
             adjoint=adjoint,
+            skip_empty=skip_empty,
+            occupancy_res=occupancy_res,
         )
         self.field, self.box, self.loss_space = field, box, loss_space
         if checkpoint_every < 0:
@@ -212,8 +216,13 @@ class GradientEngine:
             args = [tr.dtype(tr.step), np.int32(tr.max_steps), *o, *d]
             args += [Out(a) for a in outs + [status, steps] + last]
             args += [np.int32(self.checkpoint_every), ckpt]
+            # with skipping, the lattice index (steps plus steps flown over) starts the
+            # backward pass; steps counts the work done
+            lattice = np.empty(size, np.int32) if tr.skip_empty else steps
+            if tr.skip_empty:
+                args += [*tr._skip_args, Out(lattice)]
             tr._enqueue(tr._k_trace, size // tr.lanes, args, q)
-            pending.append((idx, outs, status, steps, last, ckpt, o, d))
+            pending.append((idx, outs, status, steps, last, ckpt, o, d, lattice))
         for q in self.queues:
             q.finish()
         return pending
@@ -245,7 +254,7 @@ class GradientEngine:
 
         n_par = len(self.field.data())
         jobs = []
-        for q, (idx, outs, st, sp, last, ckpt, o, d) in zip(self.queues, pending):
+        for q, (idx, outs, st, _sp, last, ckpt, o, d, lat) in zip(self.queues, pending):
             size, m = len(st), len(idx)
             mu_cols = []
             for k in range(3):
@@ -262,7 +271,7 @@ class GradientEngine:
             args = [
                 tr.dtype(tr.step),
                 *start,
-                sp,
+                lat,
                 *mu_cols,
                 InOut(grad),
                 InOut(partial),  # the kernel accumulates in it
@@ -273,7 +282,7 @@ class GradientEngine:
             ]
             if self.adjoint == "discrete":
                 args.append(self._scratch_buffer(q, size))
-            args += [Out(back[3]), tr.dtype(self.growth_max), Out(back[4])]
+            args += [Out(back[3]), tr.dtype(self.growth_max), Out(back[4]), *tr._skip_args]
             tr._enqueue(self._k_adjoint, items, args, q, local=_adjoint_group(items, tr.lanes))
             jobs.append((idx, grad, partial, back, items))
         total = np.zeros(n_par)
