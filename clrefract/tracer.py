@@ -72,8 +72,9 @@ class Tracer:
         flies back the same way (adjoint.cl); the discrete adjoint refuses it. A fit replaces
         the occupancy as the field trains (set_occupancy).
     interface_steps: shorten steps that would cross a field's known kink (analytic fields:
-        the Luneburg surface, a solid's band edges) so that they land on it and the scheme
-        keeps its order there; False integrates across it (first order at the kink).
+        the Luneburg surface, a solid's band edges; a level set's band edges) so that they
+        land on it and the scheme keeps its order there; False integrates across it (first
+        order at the kink). Off with adjoint (fits): the backward passes take fixed steps.
     """
 
     def __init__(
@@ -136,7 +137,8 @@ class Tracer:
                 # every step shrinks to the floor (measured: 60x the evaluations at 1e-10)
                 raise ClrefractError(f"tol {tol:g} is below float32's rounding; use float64")
             defines["ADAPTIVE_TOL"] = repr(self.tol)
-        self.interface_steps = bool(interface_steps)
+        # fits keep them off: the adjoints do not differentiate step lengths
+        self.interface_steps = bool(interface_steps) and not adjoint
         if not self.interface_steps:
             defines["NO_INTERFACE_STEPS"] = 1
         self.skip_empty = bool(skip_empty)
