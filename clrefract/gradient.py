@@ -129,6 +129,13 @@ class GradientEngine:
         if len(self.runtime.queues) < queues:
             raise ClrefractError(f"runtime has {len(self.runtime.queues)} queues, need {queues}")
         self.queues = self.runtime.queues[:queues]
+        occupancy = None
+        if skip_empty:
+            # exact by default: a level set's band (eta is flat off it whatever phi does),
+            # else every cell; fits replace it by their rule (fit_occupancy.py)
+            from .occupancy import distance_of, exact_live_cells
+
+            occupancy = distance_of(exact_live_cells(field, box, occupancy_res))
         self.tracer = Tracer(
             field,
             box,
@@ -141,6 +148,7 @@ class GradientEngine:
             adjoint=adjoint,
             skip_empty=skip_empty,
             occupancy_res=occupancy_res,
+            occupancy=occupancy,
         )
         self.field, self.box, self.loss_space = field, box, loss_space
         if checkpoint_every < 0:
@@ -197,13 +205,35 @@ class GradientEngine:
         self.field.set_data(params)
         self.tracer.upload_field()
 
-    def _chunks(self, n: int) -> list[np.ndarray]:
-        return [c for c in np.array_split(np.arange(n), len(self.queues)) if len(c)]
+    def _chunks(self, n: int, order=None) -> list[np.ndarray]:
+        order = np.arange(n) if order is None else order
+        return [c for c in np.array_split(order, len(self.queues)) if len(c)]
+
+    def _skip_order(self, origins, dirs):
+        """With skipping, rays whose straight line meets the live cells' bounds first: the
+        rays of a work-item (LANES of them) then mostly all fly or all step, instead of
+        each vector waiting for its slowest lane. The loss and the gradient's sum do not
+        depend on the order (beyond rounding)."""
+        occ = self.tracer.occupancy == 0
+        if not occ.any() or occ.all():
+            return None
+        box = self.tracer.box
+        cell = (np.asarray(box.hi) - np.asarray(box.lo)) / occ.shape[0]
+        idx = np.argwhere(occ)
+        lo = np.asarray(box.lo) + idx.min(0) * cell
+        hi = np.asarray(box.lo) + (idx.max(0) + 1) * cell
+        d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (lo - origins) / d, (hi - origins) / d
+        near = np.nan_to_num(np.minimum(t1, t2), nan=-np.inf).max(1)
+        far = np.nan_to_num(np.maximum(t1, t2), nan=np.inf).min(1)
+        return np.argsort(far < np.maximum(near, 0), kind="stable")
 
     def forward(self, origins, dirs):
         """Trace on every queue; returns the per-chunk results in order."""
         tr = self.tracer
-        chunks = self._chunks(len(origins))
+        order = self._skip_order(origins, dirs) if tr.skip_empty else None
+        chunks = self._chunks(len(origins), order)
         pending = []
         for q, idx in zip(self.queues, chunks):
             o, m = tr._padded_columns(origins[idx], "ray origins")

@@ -109,3 +109,12 @@ def live_cells_levelset(field, box: Box, res: int, slack: float, dilate: int = 1
         wall |= near.reshape(shape)
     live = band | (wall & (lo < c))
     return binary_dilation(live, iterations=dilate) if dilate > 0 else live
+
+
+def exact_live_cells(field, box: Box, res: int) -> np.ndarray:
+    """Cells whose skipping leaves every parameter's gradient exact: a level set's band
+    (off it eta is flat whatever the nodes do); for other fields every cell (a parameter
+    changes eta where it is flat too)."""
+    if getattr(field, "kind", "") == "levelset":
+        return live_cells_levelset(field, box, res, 0.0)
+    return np.ones((res,) * 3, bool)

@@ -70,7 +70,8 @@ class Tracer:
         constant (clrefract/occupancy.py), instead of stepping, in whole steps so that they
         stay on the lattice of steps they would have taken. The continuous backward pass
         flies back the same way (adjoint.cl); the discrete adjoint refuses it. A fit replaces
-        the occupancy as the field trains (set_occupancy).
+        the occupancy as the field trains (set_occupancy). occupancy: the grid to start
+        from (occupancy.empty_distance's), else built from the field.
     interface_steps: shorten steps that would cross a field's known kink (analytic fields:
         the Luneburg surface, a solid's band edges; a level set's band edges) so that they
         land on it and the scheme keeps its order there; False integrates across it (first
@@ -92,6 +93,7 @@ class Tracer:
         tol: float | None = None,
         skip_empty: bool = False,
         occupancy_res: int = 32,
+        occupancy: np.ndarray | None = None,
     ):
         box = box or Box()
         # a ray bent inside the box rarely travels more than a few diagonals
@@ -153,7 +155,11 @@ class Tracer:
             from .occupancy import empty_distance
 
             res = check_count("occupancy_res", occupancy_res, 1, 1024)
-            self.occupancy = empty_distance(field, box, res)
+            if occupancy is None:
+                occupancy = empty_distance(field, box, res)
+            self.occupancy = np.asarray(occupancy, np.int32)
+            if self.occupancy.shape != (res,) * 3:
+                raise ClrefractError(f"occupancy must have shape {(res,) * 3}")
             defines.update(SKIP_EMPTY=1, OCC_N=res)
         sources = ["common.h", field.source, "trace.cl"]
         if adjoint not in (False, True, "continuous", "discrete"):
