@@ -96,22 +96,25 @@ def _batch(n=256, seed=0):
     return o, d, env, env.lookup(d + rng.normal(0, 0.02, d.shape)).astype(np.float64)
 
 
-def _grads(field, live, precision="float64"):
+def _grads(field, live, precision="float64", lanes=None):
     o, d, env, tgt = _batch()
     out = []
     for skip in (False, True):
-        eng = GradientEngine(field, BOX, step=0.25, precision=precision, skip_empty=skip)
+        eng = GradientEngine(
+            field, BOX, step=0.25, precision=precision, lanes=lanes, skip_empty=skip
+        )
         if skip and live is not None:  # else the engine's own: exact for every parameter
             eng.tracer.set_occupancy(distance_of(live))
         out.append(eng.loss_and_grad(o, d, tgt, env))
     return out
 
 
-def test_level_set_gradient_is_the_same_with_skipping():
+@pytest.mark.parametrize("lanes", [1, None])  # a GPU's one ray per work-item; the CPU's
+def test_level_set_gradient_is_the_same_with_skipping(lanes):
     ls = LevelSetField.from_sdf(_ball_sdf, BOX, 16, eta=1.5, width=2.0)
     live = live_cells_levelset(ls, BOX, 32, 0.0)
     assert live.mean() < 0.2  # most of the box is skipped
-    a, b = _grads(ls, None)  # the engine's default occupancy is that band
+    a, b = _grads(ls, None, lanes=lanes)  # the engine's default occupancy is that band
     assert abs(a.loss - b.loss) <= 1e-12 * a.loss
     assert np.abs(a.grad - b.grad).max() <= 1e-9 * np.abs(a.grad).max()
     assert b.steps < a.steps / 2
