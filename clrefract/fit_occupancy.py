@@ -8,8 +8,9 @@ rebuild, judged from the node values that reach it (occupancy.py, no sampling):
   a node by about its rate per step). Off the band eta is flat whatever the nodes do, so
   the gradient there is zero and skipping drops nothing. Should a node move more than the
   slack since the last rebuild, the occupancy is rebuilt at once: the bound always holds.
-- voxel grid: the support of every node the fit may change (the hull's free nodes): the
-  others stay 1, so where only they reach, eta is flat and their gradient is zeroed anyway.
+- voxel grid: the support of every node the fit may change (the hull's free nodes) or
+  that is not 1: the others stay 1, so where only they reach, eta is flat and their
+  gradient is zeroed anyway.
   Without a hull every node is free and every cell live (nothing to skip).
 - hash grid: refused. A table entry changes eta wherever it is hashed to and the MLP
   everywhere: no cell is safe to skip.
@@ -54,7 +55,10 @@ class TrainingOccupancy:
             return live_cells_levelset(field, box, self.res, self.slack)
         if free is None:
             return np.ones((self.res,) * 3, bool)
-        return live_cells_nodes(free.reshape(field.values.shape), field, box, self.res)
+        # nodes off 1 too: a hull filled wider than the free nodes, before the first step
+        # resets them
+        nodes = free.reshape(field.values.shape) | (field.values != 1.0)
+        return live_cells_nodes(nodes, field, box, self.res)
 
     def update(self, it: int, field, tracer, free: np.ndarray | None = None, force=False):
         """Rebuild the tracer's occupancy if it is due (or forced); True if rebuilt."""
