@@ -267,9 +267,9 @@ inline void interface_step(FIELD_PARAMS, maskv active, realv *h, realv *region, 
 #endif
 
 #ifdef SKIP_EMPTY
-/* Empty-space skipping (the backward pass: adjoint.cl). occ holds, per cell of an OCC_N^3 grid over the box,
- * 0 where eta varies and else the Chebyshev distance in cells to the nearest such cell
- * (clrefract/occupancy.py). In a cell at distance k >= 1, eta is constant up to k - 1 cells
+/* Empty-space skipping (its backward pass is in adjoint.cl). occ holds, per cell of an
+ * OCC_N^3 grid over the box, 0 where eta may vary and else the Chebyshev distance in cells
+ * to the nearest such cell (clrefract/occupancy.py). In a cell at distance k >= 1, eta is constant up to k - 1 cells
  * beyond it, so the ray flies straight (x'' = 0) out of its cell and k - 1 cells on: the
  * arc length returned (0 in occupied cells). */
 #define OCC_HX (((REAL)BOX_HI_X - (REAL)BOX_LO_X) / (REAL)OCC_N)
