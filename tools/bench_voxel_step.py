@@ -2,7 +2,7 @@
 1 mm step and at fractions of a cell, scored against the dataset's test views (PSNR), with
 the time and the steps it takes. What the fit's step costs in accuracy at its best field.
 
-    python tools/bench_voxel_step.py [--scenes luneburg,plume,sphere] [--res 16,32,64]
+    python tools/bench_voxel_step.py [--scenes luneburg,plume,sphere] [--res 16,32,64,96,128]
         [--views 10 --pixels 64] [--json bench_results/voxel_step.json]
 """
 
@@ -48,7 +48,7 @@ def score(tracer, ds, env, fine=None):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="luneburg,plume,sphere")
-    ap.add_argument("--res", default="16,32,64")
+    ap.add_argument("--res", default="16,32,64,96,128")
     ap.add_argument("--views", type=int, default=10)
     ap.add_argument("--pixels", type=int, default=64)
     ap.add_argument("--precision", default="float32")
