@@ -288,6 +288,8 @@ def _cmd_fit(args) -> int:
             "adjoint_growth_max",
             "diverge_factor",
             "adjoint",
+            "skip_empty",
+            "occupancy_every",
             "width",
             "reg",
             "step",
@@ -568,11 +570,26 @@ def build_parser() -> argparse.ArgumentParser:
         help="backward pass: adjoint-state ODE (default) or the exact discrete adjoint of "
         "each step, replayed from checkpoints",
     )
+    p.add_argument(
+        "--skip-empty",
+        action="store_true",
+        default=None,
+        help="rays fly straight through cells where eta cannot vary, forward and backward "
+        "(level set, voxel; same gradient, less time where the object is small)",
+    )
+    p.add_argument(
+        "--occupancy-every",
+        type=int,
+        help="with --skip-empty: rebuild the occupancy every this many iterations (25)",
+    )
     p.add_argument("--lr-table", type=float, help="learning rate of hash tables")
     p.add_argument("--lr-mlp", type=float, help="learning rate of the MLP")
     p.add_argument("--reg", type=float, help="smoothness regulariser weight")
     p.add_argument(
-        "--step", type=float, help="integrator step, mm (default: width/4 for level sets, else 1)"
+        "--step",
+        type=float,
+        help="integrator step, mm (default: width/4 for level sets and hash grids, half a "
+        "cell of the final grid for voxel grids)",
     )
     p.add_argument("--queues", type=int, help="command queues the batch is split across")
     p.add_argument("--precision", choices=["float32", "float64"])

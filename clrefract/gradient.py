@@ -120,6 +120,8 @@ class GradientEngine:
         checkpoint_every: int = 0,
         growth_max: float = 0.0,
         adjoint: str = "continuous",
+        skip_empty: bool = False,
+        occupancy_res: int = 32,
     ):
         if adjoint not in ADJOINTS:
             raise ClrefractError(f"adjoint must be one of {ADJOINTS}, got {adjoint!r}")
@@ -127,6 +129,13 @@ class GradientEngine:
         if len(self.runtime.queues) < queues:
             raise ClrefractError(f"runtime has {len(self.runtime.queues)} queues, need {queues}")
         self.queues = self.runtime.queues[:queues]
+        occupancy = None
+        if skip_empty:
+            # exact by default: a level set's band (eta is flat off it whatever phi does),
+            # else every cell; fits replace it by their rule (fit_occupancy.py)
+            from .occupancy import distance_of, exact_live_cells
+
+            occupancy = distance_of(exact_live_cells(field, box, occupancy_res))
         self.tracer = Tracer(
             field,
             box,
@@ -137,6 +146,9 @@ class GradientEngine:
             max_steps=max_steps,
             runtime=self.runtime,
             adjoint=adjoint,
+            skip_empty=skip_empty,
+            occupancy_res=occupancy_res,
+            occupancy=occupancy,
         )
         self.field, self.box, self.loss_space = field, box, loss_space
         if checkpoint_every < 0:
@@ -193,13 +205,35 @@ class GradientEngine:
         self.field.set_data(params)
         self.tracer.upload_field()
 
-    def _chunks(self, n: int) -> list[np.ndarray]:
-        return [c for c in np.array_split(np.arange(n), len(self.queues)) if len(c)]
+    def _chunks(self, n: int, order=None) -> list[np.ndarray]:
+        order = np.arange(n) if order is None else order
+        return [c for c in np.array_split(order, len(self.queues)) if len(c)]
+
+    def _skip_order(self, origins, dirs):
+        """With skipping, rays whose straight line meets the live cells' bounds first: the
+        rays of a work-item (LANES of them) then mostly all fly or all step, instead of
+        each vector waiting for its slowest lane. The loss and the gradient's sum do not
+        depend on the order (beyond rounding)."""
+        occ = self.tracer.occupancy == 0
+        if not occ.any() or occ.all():
+            return None
+        box = self.tracer.box
+        cell = (np.asarray(box.hi) - np.asarray(box.lo)) / occ.shape[0]
+        idx = np.argwhere(occ)
+        lo = np.asarray(box.lo) + idx.min(0) * cell
+        hi = np.asarray(box.lo) + (idx.max(0) + 1) * cell
+        d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (lo - origins) / d, (hi - origins) / d
+        near = np.nan_to_num(np.minimum(t1, t2), nan=-np.inf).max(1)
+        far = np.nan_to_num(np.maximum(t1, t2), nan=np.inf).min(1)
+        return np.argsort(far < np.maximum(near, 0), kind="stable")
 
     def forward(self, origins, dirs):
         """Trace on every queue; returns the per-chunk results in order."""
         tr = self.tracer
-        chunks = self._chunks(len(origins))
+        order = self._skip_order(origins, dirs) if tr.skip_empty else None
+        chunks = self._chunks(len(origins), order)
         pending = []
         for q, idx in zip(self.queues, chunks):
             o, m = tr._padded_columns(origins[idx], "ray origins")
@@ -212,8 +246,13 @@ class GradientEngine:
             args = [tr.dtype(tr.step), np.int32(tr.max_steps), *o, *d]
             args += [Out(a) for a in outs + [status, steps] + last]
             args += [np.int32(self.checkpoint_every), ckpt]
+            # with skipping, the lattice index (steps plus steps flown over) starts the
+            # backward pass; steps counts the work done
+            lattice = np.empty(size, np.int32) if tr.skip_empty else steps
+            if tr.skip_empty:
+                args += [*tr._skip_args, Out(lattice)]
             tr._enqueue(tr._k_trace, size // tr.lanes, args, q)
-            pending.append((idx, outs, status, steps, last, ckpt, o, d))
+            pending.append((idx, outs, status, steps, last, ckpt, o, d, lattice))
         for q in self.queues:
             q.finish()
         return pending
@@ -245,7 +284,7 @@ class GradientEngine:
 
         n_par = len(self.field.data())
         jobs = []
-        for q, (idx, outs, st, sp, last, ckpt, o, d) in zip(self.queues, pending):
+        for q, (idx, outs, st, _sp, last, ckpt, o, d, lat) in zip(self.queues, pending):
             size, m = len(st), len(idx)
             mu_cols = []
             for k in range(3):
@@ -262,7 +301,7 @@ class GradientEngine:
             args = [
                 tr.dtype(tr.step),
                 *start,
-                sp,
+                lat,
                 *mu_cols,
                 InOut(grad),
                 InOut(partial),  # the kernel accumulates in it
@@ -273,7 +312,7 @@ class GradientEngine:
             ]
             if self.adjoint == "discrete":
                 args.append(self._scratch_buffer(q, size))
-            args += [Out(back[3]), tr.dtype(self.growth_max), Out(back[4])]
+            args += [Out(back[3]), tr.dtype(self.growth_max), Out(back[4]), *tr._skip_args]
             tr._enqueue(self._k_adjoint, items, args, q, local=_adjoint_group(items, tr.lanes))
             jobs.append((idx, grad, partial, back, items))
         total = np.zeros(n_par)

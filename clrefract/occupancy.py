@@ -46,7 +46,75 @@ def occupied_cells(field: Field, box: Box, res: int = 32, sub: int = 4, dilate: 
 def empty_distance(field: Field, box: Box, res: int = 32, sub: int = 4, dilate: int = 1):
     """int32 (res, res, res): 0 in occupied cells, else the Chebyshev distance in cells to
     the nearest occupied one (res + 1 where nothing is occupied)."""
-    occ = occupied_cells(field, box, res, sub, dilate)
+    return distance_of(occupied_cells(field, box, res, sub, dilate))
+
+
+def distance_of(occ: np.ndarray) -> np.ndarray:
+    """The tracer's grid for a boolean occupancy (see empty_distance)."""
     if not occ.any():
-        return np.full(occ.shape, res + 1, np.int32)
+        return np.full(occ.shape, occ.shape[0] + 1, np.int32)
     return distance_transform_cdt(~occ, metric="chessboard").astype(np.int32)
+
+
+# --- what may vary while a field trains ------------------------------------------------------
+# Node grids (voxel, level set) are interpolated from the nodes within `reach` node spacings
+# of a point: the tricubic B-spline's support is 2 spacings, the others' 1. A cell's values
+# are therefore bounded by the nodes whose supports overlap it, which gives an occupancy
+# that holds for any change of the nodes that the bound allows, with no sampling.
+REACH = {"bspline": 2, "trilinear": 1, "smoothstep": 1}
+
+
+def cell_reduce(nodes: np.ndarray, node_box: Box, box: Box, res: int, reach: int, op):
+    """(res, res, res): op (np.min, np.max) of the node values whose interpolation support
+    reaches each cell of a res^3 grid over box; separable, one axis at a time."""
+    out = np.asarray(nodes)
+    for ax in range(3):
+        n = out.shape[ax]
+        h = (node_box.hi[ax] - node_box.lo[ax]) / (n - 1)
+        edges = np.linspace(box.lo[ax], box.hi[ax], res + 1)
+        # nodes i with x_i - reach h < cell_hi and x_i + reach h > cell_lo (a margin of
+        # 1e-9 h against rounding: including one more node only widens the bound)
+        first = np.ceil((edges[:-1] - node_box.lo[ax]) / h - reach - 1e-9).astype(int)
+        last = np.floor((edges[1:] - node_box.lo[ax]) / h + reach + 1e-9).astype(int)
+        first, last = np.clip(first, 0, n - 1), np.clip(last, 0, n - 1)
+        moved = np.moveaxis(out, ax, 0)
+        red = np.stack([op(moved[a : b + 1], axis=0) for a, b in zip(first, last)])
+        out = np.moveaxis(red, 0, ax)
+    return out
+
+
+def live_cells_nodes(free: np.ndarray, field, box: Box, res: int, dilate: int = 1):
+    """Cells that a trainable node (free, the node grid's shape) can change: its support."""
+    reach = REACH[getattr(field, "interp", "bspline")]
+    live = cell_reduce(free.astype(np.int8), field.box, box, res, reach, np.max) > 0
+    return binary_dilation(live, iterations=dilate) if dilate > 0 else live
+
+
+def live_cells_levelset(field, box: Box, res: int, slack: float, dilate: int = 1):
+    """Cells where a level set's eta may vary while no phi node moves by more than `slack`
+    mm: its band |phi| < w/2 + slack can reach them (phi in a cell lies between its nodes'
+    extremes), or the solid reaches the box window there (eta = 1 + W (n - 1) inside)."""
+    c = field.width / 2 + slack
+    lo = cell_reduce(field.phi, field.box, box, res, 2, np.min)
+    hi = cell_reduce(field.phi, field.box, box, res, 2, np.max)
+    band = (lo < c) & (hi > -c)
+    # the window varies within 2 margins of the walls
+    wall = np.zeros((res,) * 3, bool)
+    for ax in range(3):
+        e = np.linspace(box.lo[ax], box.hi[ax], res + 1)
+        m = 2 * field.box.margin
+        near = (e[:-1] < field.box.lo[ax] + m) | (e[1:] > field.box.hi[ax] - m)
+        shape = [1, 1, 1]
+        shape[ax] = res
+        wall |= near.reshape(shape)
+    live = band | (wall & (lo < c))
+    return binary_dilation(live, iterations=dilate) if dilate > 0 else live
+
+
+def exact_live_cells(field, box: Box, res: int) -> np.ndarray:
+    """Cells whose skipping leaves every parameter's gradient exact: a level set's band
+    (off it eta is flat whatever the nodes do); for other fields every cell (a parameter
+    changes eta where it is flat too)."""
+    if getattr(field, "kind", "") == "levelset":
+        return live_cells_levelset(field, box, res, 0.0)
+    return np.ones((res,) * 3, bool)

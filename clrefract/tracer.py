@@ -67,11 +67,15 @@ class Tracer:
         counts attempted steps (rejected ones cost evaluations too). Forward only: the
         backward pass replays fixed steps, so adjoint=True refuses it.
     skip_empty: rays fly straight through the cells of an occupancy_res^3 grid where eta is
-        constant (clrefract/occupancy.py), instead of stepping. Forward only (the backward
-        pass replays fixed steps): adjoint=True refuses it.
+        constant (clrefract/occupancy.py), instead of stepping, in whole steps so that they
+        stay on the lattice of steps they would have taken. The continuous backward pass
+        flies back the same way (adjoint.cl); the discrete adjoint refuses it. A fit replaces
+        the occupancy as the field trains (set_occupancy). occupancy: the grid to start
+        from (occupancy.empty_distance's), else built from the field.
     interface_steps: shorten steps that would cross a field's known kink (analytic fields:
-        the Luneburg surface, a solid's band edges) so that they land on it and the scheme
-        keeps its order there; False integrates across it (first order at the kink).
+        the Luneburg surface, a solid's band edges; a level set's band edges) so that they
+        land on it and the scheme keeps its order there; False integrates across it (first
+        order at the kink). Off with adjoint (fits): the backward passes take fixed steps.
     """
 
     def __init__(
@@ -89,6 +93,7 @@ class Tracer:
         tol: float | None = None,
         skip_empty: bool = False,
         occupancy_res: int = 32,
+        occupancy: np.ndarray | None = None,
     ):
         box = box or Box()
         # a ray bent inside the box rarely travels more than a few diagonals
@@ -134,20 +139,27 @@ class Tracer:
                 # every step shrinks to the floor (measured: 60x the evaluations at 1e-10)
                 raise ClrefractError(f"tol {tol:g} is below float32's rounding; use float64")
             defines["ADAPTIVE_TOL"] = repr(self.tol)
-        self.interface_steps = bool(interface_steps)
+        # fits keep them off: the adjoints do not differentiate step lengths
+        self.interface_steps = bool(interface_steps) and not adjoint
         if not self.interface_steps:
             defines["NO_INTERFACE_STEPS"] = 1
         self.skip_empty = bool(skip_empty)
         if self.skip_empty:
-            if adjoint:
+            if adjoint == "discrete":
                 raise ClrefractError(
-                    "empty-space skipping is forward only: the backward pass replays fixed "
-                    "steps; fit without skip_empty"
+                    "empty-space skipping and the discrete adjoint do not mix: it replays "
+                    "every step; use adjoint = 'continuous' or skip_empty = false"
                 )
+            if integrator != "rkn4" and adjoint:
+                raise ClrefractError("the backward pass with skip_empty reverses rkn4 steps")
             from .occupancy import empty_distance
 
             res = check_count("occupancy_res", occupancy_res, 1, 1024)
-            self.occupancy = empty_distance(field, box, res)
+            if occupancy is None:
+                occupancy = empty_distance(field, box, res)
+            self.occupancy = np.asarray(occupancy, np.int32)
+            if self.occupancy.shape != (res,) * 3:
+                raise ClrefractError(f"occupancy must have shape {(res,) * 3}")
             defines.update(SKIP_EMPTY=1, OCC_N=res)
         sources = ["common.h", field.source, "trace.cl"]
         if adjoint not in (False, True, "continuous", "discrete"):
@@ -173,12 +185,27 @@ class Tracer:
         self._skip_args = []
         self.launch_bytes = 0  # device buffers the last launch used (bench's memory column)
         if self.skip_empty:
-            mf = cl.mem_flags
-            occ = np.ascontiguousarray(self.occupancy.reshape(-1), np.int32)
-            self._skip_args = [
-                cl.Buffer(self.runtime.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=occ)
-            ]
+            self.set_occupancy(self.occupancy)
         self.upload_field()
+
+    def set_occupancy(self, distance: np.ndarray) -> None:
+        """Replace the occupancy (empty_distance's grid, same resolution) with a new one."""
+        if not self.skip_empty:
+            raise ClrefractError("set_occupancy needs a tracer built with skip_empty")
+        if distance.shape != self.occupancy.shape:
+            raise ClrefractError(
+                f"occupancy must have shape {self.occupancy.shape}, got {distance.shape}"
+            )
+        cl = self.runtime.cl
+        mf = cl.mem_flags
+        self.occupancy = np.ascontiguousarray(distance, np.int32)
+        self._skip_args = [
+            cl.Buffer(
+                self.runtime.context,
+                mf.READ_ONLY | mf.COPY_HOST_PTR,
+                hostbuf=self.occupancy.reshape(-1),
+            )
+        ]
 
     def checkpoint_buffer(self, n_padded: int, every: int):
         """Device buffer for the states the forward pass keeps every `every` steps."""
@@ -285,7 +312,9 @@ class Tracer:
         outs = [Out(a) for a in p + v + [status, steps] + last]
         scal = [self.dtype(self.step), np.int32(self.max_steps)]
         no_ckpt = [np.int32(0), self._no_ckpt]
-        self._run(self._k_trace, m // self.lanes, scal + o + d + outs + no_ckpt + self._skip_args)
+        lattice = [Out(np.empty(m, np.int32))] if self.skip_empty else []
+        args = scal + o + d + outs + no_ckpt + self._skip_args + lattice
+        self._run(self._k_trace, m // self.lanes, args)
         vel = np.stack(v, axis=1)[:n].astype(np.float64)
         speed = np.linalg.norm(vel, axis=1)
         return TraceResult(

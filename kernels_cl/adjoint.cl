@@ -50,6 +50,38 @@ inline void adjoint_f(FIELD_PARAMS, __global REAL *grad FIELD_ACC_PARAM, realv w
     *fmz = gz * gm + eta * hz;
 }
 
+/* One backward RKN step k = -h of y = (x, mu), y' = (v, nu), in the lanes of `active`;
+ * the stages splat w * (mu . dD/dtheta) with Simpson's weights (w is 0 in other lanes). */
+#define ADJ_STATE realv *x, realv *y, realv *z, realv *vx, realv *vy, realv *vz, realv *mx, \
+                  realv *my, realv *mz, realv *nx, realv *ny, realv *nz
+inline void adjoint_step(FIELD_PARAMS, __global REAL *grad FIELD_ACC_PARAM, const REAL h,
+                         maskv active, ADJ_STATE) {
+    const REAL k = -h, k2 = (REAL)0.5 * k, k8 = (REAL)0.125 * k, s6 = (REAL)1 / (REAL)6;
+    realv w = SEL(RV(0), RV(h * s6), active);
+    realv ax, ay, az, amx, amy, amz, bx_, by_, bz_, bmx, bmy, bmz;
+    realv cx, cy, cz, cmx, cmy, cmz;
+    adjoint_f(FIELD_ARGS, grad FIELD_ACC_ARG, w, *x, *y, *z, *mx, *my, *mz, &ax, &ay, &az, &amx,
+              &amy, &amz);
+    ax *= k; ay *= k; az *= k; amx *= k; amy *= k; amz *= k;
+    adjoint_f(FIELD_ARGS, grad FIELD_ACC_ARG, RV(4) * w, *x + k2 * *vx + k8 * ax,
+              *y + k2 * *vy + k8 * ay, *z + k2 * *vz + k8 * az, *mx + k2 * *nx + k8 * amx,
+              *my + k2 * *ny + k8 * amy, *mz + k2 * *nz + k8 * amz, &bx_, &by_, &bz_, &bmx,
+              &bmy, &bmz);
+    bx_ *= k; by_ *= k; bz_ *= k; bmx *= k; bmy *= k; bmz *= k;
+    adjoint_f(FIELD_ARGS, grad FIELD_ACC_ARG, w, *x + k * *vx + k2 * bx_,
+              *y + k * *vy + k2 * by_, *z + k * *vz + k2 * bz_, *mx + k * *nx + k2 * bmx,
+              *my + k * *ny + k2 * bmy, *mz + k * *nz + k2 * bmz, &cx, &cy, &cz, &cmx, &cmy,
+              &cmz);
+    cx *= k; cy *= k; cz *= k; cmx *= k; cmy *= k; cmz *= k;
+#define ADV(P, V, A, B, C)                                                                   \
+    *P = SEL(*P, *P + k * (*V + s6 * (A + RV(2) * B)), active);                              \
+    *V = SEL(*V, *V + s6 * (A + RV(4) * B + C), active)
+    ADV(x, vx, ax, bx_, cx); ADV(y, vy, ay, by_, cy); ADV(z, vz, az, bz_, cz);
+    ADV(mx, nx, amx, bmx, cmx); ADV(my, ny, amy, bmy, cmy); ADV(mz, nz, amz, bmz, cmz);
+#undef ADV
+}
+
+#ifndef SKIP_EMPTY
 __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
                            __global const REAL *pyk, __global const REAL *pzk,
                            __global const REAL *qxk, __global const REAL *qyk,
@@ -73,34 +105,13 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
     const realv inv_m0 = RV(1) / fmax(mx * mx + my * my + mz * mz, RV(1e-30));
     const realv g2 = RV(growth_max * growth_max);
     realv grown = RV(1), alive = RV(1);
-    const REAL k = -h, k2 = (REAL)0.5 * k, k8 = (REAL)0.125 * k, s6 = (REAL)1 / (REAL)6;
     /* s: forward index of the state the step starts from */
     for (int s = max_steps; s > 0; --s) {
         maskv active = RV(s) <= n && alive > RV(0);
         if (!ANY(active))
             continue;
-        realv w = SEL(RV(0), RV(h * s6), active);
-        realv ax, ay, az, amx, amy, amz, bx_, by_, bz_, bmx, bmy, bmz;
-        realv cx, cy, cz, cmx, cmy, cmz;
-        adjoint_f(FIELD_ARGS, grad FIELD_ACC_ARG, w, x, y, z, mx, my, mz, &ax, &ay, &az, &amx,
-                  &amy, &amz);
-        ax *= k; ay *= k; az *= k; amx *= k; amy *= k; amz *= k;
-        adjoint_f(FIELD_ARGS, grad FIELD_ACC_ARG, RV(4) * w, x + k2 * vx + k8 * ax,
-                  y + k2 * vy + k8 * ay, z + k2 * vz + k8 * az, mx + k2 * nx + k8 * amx,
-                  my + k2 * ny + k8 * amy, mz + k2 * nz + k8 * amz, &bx_, &by_, &bz_, &bmx,
-                  &bmy, &bmz);
-        bx_ *= k; by_ *= k; bz_ *= k; bmx *= k; bmy *= k; bmz *= k;
-        adjoint_f(FIELD_ARGS, grad FIELD_ACC_ARG, w, x + k * vx + k2 * bx_,
-                  y + k * vy + k2 * by_, z + k * vz + k2 * bz_, mx + k * nx + k2 * bmx,
-                  my + k * ny + k2 * bmy, mz + k * nz + k2 * bmz, &cx, &cy, &cz, &cmx, &cmy,
-                  &cmz);
-        cx *= k; cy *= k; cz *= k; cmx *= k; cmy *= k; cmz *= k;
-#define ADV(P, V, A, B, C)                                                                   \
-    P = SEL(P, P + k * (V + s6 * (A + RV(2) * B)), active);                                  \
-    V = SEL(V, V + s6 * (A + RV(4) * B + C), active)
-        ADV(x, vx, ax, bx_, cx); ADV(y, vy, ay, by_, cy); ADV(z, vz, az, bz_, cz);
-        ADV(mx, nx, amx, bmx, cmx); ADV(my, ny, amy, bmy, cmy); ADV(mz, nz, amz, bmz, cmz);
-#undef ADV
+        adjoint_step(FIELD_ARGS, grad FIELD_ACC_ARG, h, active, &x, &y, &z, &vx, &vy, &vz, &mx,
+                     &my, &mz, &nx, &ny, &nz);
         realv m2 = (mx * mx + my * my + mz * mz) * inv_m0;
         grown = SEL(grown, fmax(grown, m2), active);
         if (growth_max > (REAL)0)
@@ -122,3 +133,91 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
     VSTORE(sqrt(grown), i, growth);
     FIELD_ACC_FLUSH(grad, partial, i);
 }
+#else
+/* With empty-space skipping: `steps` holds each ray's lattice index (trace_rays), and the
+ * ray goes back along the same lattice, flying straight through empty cells as the forward
+ * pass did: there D = 0 and H_D = 0, so x and mu move linearly, exactly. What is dropped is
+ * the splat of mu . dD/dtheta along the flights: zero for a level set (eta is flat there
+ * whatever phi's nodes do, off the band), and for other fields zero for every parameter
+ * whose support lies in occupied cells (the fit's occupancy covers every trainable one).
+ * Lanes keep their own lattice index and meet their checkpoints (indexed by it) apart. */
+inline realv ckpt_gather(__global const REAL *ckpt, size_t col, size_t i, int every,
+                         int slots, maskv mask, realv s, int comp, realv keep) {
+    REAL a[3][LANES];
+    VSTORE(SEL(RV(0), RV(1), mask), 0, a[0]); VSTORE(s, 0, a[1]); VSTORE(keep, 0, a[2]);
+    for (int l = 0; l < LANES; ++l) {
+        int j = (int)a[1][l];
+        if (a[0][l] != (REAL)0 && j >= every && j % every == 0 && j / every <= slots)
+            a[2][l] = ckpt[(size_t)(j / every - 1) * 6 * col + comp * col + i * LANES + l];
+    }
+    return VLOAD(0, a[2]);
+}
+
+__kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
+                           __global const REAL *pyk, __global const REAL *pzk,
+                           __global const REAL *qxk, __global const REAL *qyk,
+                           __global const REAL *qzk, __global const int *steps,
+                           __global const REAL *mux, __global const REAL *muy,
+                           __global const REAL *muz, __global REAL *grad,
+                           __global REAL *partial, __global REAL *bx, __global REAL *by,
+                           __global REAL *bz, const int max_steps, const int ckpt_every,
+                           __global const REAL *ckpt, __global REAL *snap, const REAL growth_max,
+                           __global REAL *growth SKIP_ARG) {
+    const size_t i = get_global_id(0);
+    const size_t col = get_global_size(0) * LANES;
+    realv x = VLOAD(i, pxk), y = VLOAD(i, pyk), z = VLOAD(i, pzk);
+    realv vx = VLOAD(i, qxk), vy = VLOAD(i, qyk), vz = VLOAD(i, qzk);
+    realv mx = VLOAD(i, mux), my = VLOAD(i, muy), mz = VLOAD(i, muz);
+    realv nx = RV(0), ny = RV(0), nz = RV(0);
+    realv s = TO_REALV(VLOAD(i, steps)); /* lattice index of the state */
+    FIELD_ACC_DECL
+    realv worst = RV(0);
+    const realv inv_m0 = RV(1) / fmax(mx * mx + my * my + mz * mz, RV(1e-30));
+    const realv g2 = RV(growth_max * growth_max);
+    realv grown = RV(1), alive = RV(1);
+    const int slots = ckpt_every > 0 ? max(max_steps / ckpt_every, 1) : 0;
+    /* each iteration flies or steps at least one lattice index: the loop ends */
+    for (int it = 0; it < 2 * max_steps + 2; ++it) {
+        maskv active = s > RV(0) && alive > RV(0);
+        if (!ANY(active))
+            break;
+        realv sp = sqrt(vx * vx + vy * vy + vz * vz);
+        realv L = empty_jump(occ, x, y, z, -vx / sp, -vy / sp, -vz / sp);
+        realv nj = fmin(floor(L / (sp * h)), s);
+        maskv fly = active && nj > RV(0);
+        realv back = -nj * h;
+        x = SEL(x, x + back * vx, fly); y = SEL(y, y + back * vy, fly);
+        z = SEL(z, z + back * vz, fly);
+        mx = SEL(mx, mx + back * nx, fly); my = SEL(my, my + back * ny, fly);
+        mz = SEL(mz, mz + back * nz, fly);
+        maskv stepping = active && !fly;
+        if (ANY(stepping))
+            adjoint_step(FIELD_ARGS, grad FIELD_ACC_ARG, h, stepping, &x, &y, &z, &vx, &vy, &vz,
+                         &mx, &my, &mz, &nx, &ny, &nz);
+        s -= SEL(RV(0), SEL(RV(1), nj, fly), active);
+        realv m2 = (mx * mx + my * my + mz * mz) * inv_m0;
+        grown = SEL(grown, fmax(grown, m2), active);
+        if (growth_max > (REAL)0)
+            alive = SEL(alive, RV(0), active && m2 > g2);
+        if (ckpt_every > 0) {
+            realv sc = s - floor(s / RV(ckpt_every)) * RV(ckpt_every);
+            maskv at = active && sc == RV(0) && s >= RV(ckpt_every) &&
+                       s <= RV((REAL)slots * ckpt_every);
+            if (ANY(at)) {
+                realv cx_ = ckpt_gather(ckpt, col, i, ckpt_every, slots, at, s, 0, x);
+                realv cy_ = ckpt_gather(ckpt, col, i, ckpt_every, slots, at, s, 1, y);
+                realv cz_ = ckpt_gather(ckpt, col, i, ckpt_every, slots, at, s, 2, z);
+                realv ex = x - cx_, ey = y - cy_, ez = z - cz_;
+                worst = SEL(worst, fmax(worst, sqrt(ex * ex + ey * ey + ez * ez)), at);
+                x = cx_; y = cy_; z = cz_;
+                vx = ckpt_gather(ckpt, col, i, ckpt_every, slots, at, s, 3, vx);
+                vy = ckpt_gather(ckpt, col, i, ckpt_every, slots, at, s, 4, vy);
+                vz = ckpt_gather(ckpt, col, i, ckpt_every, slots, at, s, 5, vz);
+            }
+        }
+    }
+    VSTORE(x, i, bx); VSTORE(y, i, by); VSTORE(z, i, bz); VSTORE(worst, i, snap);
+    VSTORE(sqrt(grown), i, growth);
+    FIELD_ACC_FLUSH(grad, partial, i);
+}
+#endif

@@ -188,8 +188,9 @@ VOX_INLINE void vox_row(__global const REAL *restrict fd, int *ox, int *oy, int 
     q[0] = VLOAD(0, q0); q[1] = VLOAD(0, q1); q[2] = VLOAD(0, q2); q[3] = VLOAD(0, q3);
 }
 
-inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
-                        realv *gz) {
+/* The spline g (a level set's phi) at (x, y, z) and its gradient. */
+VOX_INLINE realv vox_spline(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
+                            realv *gz) {
     realv wx[4], dx[4], ex[4], wy[4], dy[4], ey[4], wz[4], dz[4], ez[4];
     int ox[4][LANES], oy[4][LANES], oz[4][LANES];
     vox_offsets(vox_axis4v(x, (REAL)BOX_LO_X, VOX_HX, VOX_NX, wx, dx, ex), VOX_NX,
@@ -213,6 +214,16 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
         dgy += wx[a] * y1;
         dgz += wx[a] * y2;
     }
+    *gx = dgx;
+    *gy = dgy;
+    *gz = dgz;
+    return g;
+}
+
+inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
+                        realv *gz) {
+    realv dgx, dgy, dgz;
+    realv g = vox_spline(FIELD_ARGS, x, y, z, &dgx, &dgy, &dgz);
 #if VOX_LEVELSET
     const REAL n = fd[VOX_NODES];
     realv S, dS, F2;
@@ -230,6 +241,41 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
     *gz = vz * g1 + w * dgz;
     return RV(1) + w * g1;
 }
+
+#if VOX_LEVELSET && !defined(NO_INTERFACE_STEPS)
+/* Interface steps (rendering only: the tracer sets NO_INTERFACE_STEPS for fits, whose
+ * adjoints do not differentiate step lengths). The smoothstep's higher derivatives jump at
+ * the band edges phi = -+w/2, kinks like the analytic solids'; steps land on them. */
+#define FIELD_INTERFACE 1
+#define INTERFACE_LO (-(REAL)0.5 * (REAL)LS_WIDTH)
+#define INTERFACE_HI ((REAL)0.5 * (REAL)LS_WIDTH)
+inline realv field_interface(FIELD_PARAMS, realv x, realv y, realv z) {
+    realv gx, gy, gz;
+    return vox_spline(FIELD_ARGS, x, y, z, &gx, &gy, &gz);
+}
+/* One region's formula continued past its edges: region -1 inside (F = n - 1), 0 the band
+ * (the smoothstep's polynomial, unclamped), +1 outside (F = 0), -2 by position. */
+inline realv field_eval_region(FIELD_PARAMS, realv x, realv y, realv z, realv region, realv *gx,
+                               realv *gy, realv *gz) {
+    realv dgx, dgy, dgz;
+    realv phi = vox_spline(FIELD_ARGS, x, y, z, &dgx, &dgy, &dgz);
+    const REAL w = (REAL)LS_WIDTH, dn = fd[VOX_NODES] - (REAL)1;
+    realv pos = SEL(SEL(RV(0), RV(1), phi > RV(0.5 * w)), RV(-1), phi < RV(-0.5 * w));
+    realv reg = SEL(region, pos, region < RV(-1.5));
+    realv t = RV(0.5) - phi / RV(w);
+    realv band = SEL(RV(0), RV(1), reg == RV(0));
+    realv p = t * t * t * (t * (t * RV(6) - RV(15)) + RV(10));
+    realv dp = RV(30) * t * t * (t - RV(1)) * (t - RV(1));
+    realv g1 = RV(dn) * SEL(band * p, RV(1), reg < RV(-0.5));
+    realv f1 = -RV(dn) * band * dp / RV(w);
+    realv vx, vy, vz;
+    realv wn = box_window(x, y, z, &vx, &vy, &vz);
+    *gx = vx * g1 + wn * f1 * dgx;
+    *gy = vy * g1 + wn * f1 * dgy;
+    *gz = vz * g1 + wn * f1 * dgz;
+    return RV(1) + wn * g1;
+}
+#endif
 #else
 inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
                         realv *gz) {

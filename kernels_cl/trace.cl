@@ -267,9 +267,9 @@ inline void interface_step(FIELD_PARAMS, maskv active, realv *h, realv *region, 
 #endif
 
 #ifdef SKIP_EMPTY
-/* Empty-space skipping (forward only). occ holds, per cell of an OCC_N^3 grid over the box,
- * 0 where eta varies and else the Chebyshev distance in cells to the nearest such cell
- * (clrefract/occupancy.py). In a cell at distance k >= 1, eta is constant up to k - 1 cells
+/* Empty-space skipping (its backward pass is in adjoint.cl). occ holds, per cell of an
+ * OCC_N^3 grid over the box, 0 where eta may vary and else the Chebyshev distance in cells
+ * to the nearest such cell (clrefract/occupancy.py). In a cell at distance k >= 1, eta is constant up to k - 1 cells
  * beyond it, so the ray flies straight (x'' = 0) out of its cell and k - 1 cells on: the
  * arc length returned (0 in occupied cells). */
 #define OCC_HX (((REAL)BOX_HI_X - (REAL)BOX_LO_X) / (REAL)OCC_N)
@@ -301,9 +301,36 @@ inline realv empty_jump(__global const int *occ, realv x, realv y, realv z, real
     realv t = fmax(fmin(fmin(tx, ty), tz), RV(0)) + (k - RV(1)) * hmin + RV((REAL)1e-3 * hmin);
     return SEL(RV(0), t, k >= RV(1));
 }
+/* Checkpoints by lattice index (the steps a ray without skipping would have taken to get
+ * here): lanes reach them at different loop iterations, so each lane stores its own. The
+ * state (x, v) is at index j1 = j0 + m; every multiple of C in (j0, j1] gets the straight
+ * line back from it (exact for a flight, the state itself for one step, m = 1). */
+inline void ckpt_lanes(__global REAL *ckpt, size_t col, size_t i, int every, int slots,
+                       maskv mask, realv j0, realv m, REAL h, realv x, realv y, realv z,
+                       realv vx, realv vy, realv vz) {
+    REAL a[8][LANES];
+    VSTORE(SEL(RV(0), RV(1), mask), 0, a[0]); VSTORE(j0, 0, a[1]); VSTORE(m, 0, a[2]);
+    VSTORE(x, 0, a[3]); VSTORE(y, 0, a[4]); VSTORE(z, 0, a[5]);
+    REAL b[3][LANES];
+    VSTORE(vx, 0, b[0]); VSTORE(vy, 0, b[1]); VSTORE(vz, 0, b[2]);
+    for (int l = 0; l < LANES; ++l) {
+        if (a[0][l] == (REAL)0) continue;
+        int lo = (int)a[1][l], hi = lo + (int)a[2][l];
+        for (int j = (lo / every + 1) * every; j <= hi && j / every <= slots; j += every) {
+            __global REAL *c = ckpt + (size_t)(j / every - 1) * 6 * col + i * LANES + l;
+            REAL back = (REAL)(j - hi) * h;
+            c[0] = a[3][l] + back * b[0][l]; c[col] = a[4][l] + back * b[1][l];
+            c[2 * col] = a[5][l] + back * b[2][l];
+            c[3 * col] = b[0][l]; c[4 * col] = b[1][l]; c[5 * col] = b[2][l];
+        }
+    }
+}
 #define SKIP_ARG , __global const int *occ
+/* the forward pass also returns each ray's lattice index, where the backward pass starts */
+#define TRACE_SKIP_ARG , __global const int *occ, __global int *lattice
 #else
 #define SKIP_ARG
+#define TRACE_SKIP_ARG
 #endif
 
 /* Where a ray from origin o along u enters the box, and its v = eta u there (the origin,
@@ -346,7 +373,7 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
                          __global REAL *qy, __global REAL *qz, __global int *status,
                          __global int *steps, __global REAL *lx, __global REAL *ly,
                          __global REAL *lz, const int ckpt_every,
-                         __global REAL *ckpt SKIP_ARG) {
+                         __global REAL *ckpt TRACE_SKIP_ARG) {
     const size_t i = get_global_id(0);
     const size_t col = get_global_size(0) * LANES;
     realv sx = VLOAD(i, ox), sy = VLOAD(i, oy), sz = VLOAD(i, oz); /* kept for missed rays */
@@ -368,7 +395,23 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
 #ifdef ADAPTIVE_TOL
     realv hcur = RV(h); /* per-lane step of the adaptive pair, at most h */
 #endif
+#ifdef SKIP_EMPTY
+    realv lat = RV(0); /* lattice index of the state: steps plus the steps flown over */
+    const int slots = ckpt_every > 0 ? max(max_steps / ckpt_every, 1) : 0;
+#endif
+#ifdef SKIP_EMPTY
+    /* the cap counts lattice steps, flown or taken, as without skipping: the same rays are
+     * trapped; flights cost iterations too, hence the longer loop */
+    for (int k = 0; k < 2 * max_steps + 2 && ANY(active); ++k) {
+        maskv capped = active && lat >= RV(max_steps);
+        if (ANY(capped)) {
+            st = SEL(st, RV(ST_TRAPPED), capped);
+            active = active && !capped;
+            if (!ANY(active)) break;
+        }
+#else
     for (int k = 0; k < max_steps && ANY(active); ++k) {
+#endif
         realv ix, iy, iz, ivx, ivy, ivz;
         realv hk = RV(h);
         maskv jumped = active && !active; /* all false, of the mask type */
@@ -379,7 +422,8 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
             /* whole steps only (dx/dsigma = v): the ray stays on the step lattice it would
              * have followed, so that steps resume where they would have been and images
              * match those without skipping to rounding, not to the integrator's error */
-            realv sg = floor(L / (sp * h)) * h;
+            realv nj = floor(L / (sp * h));
+            realv sg = nj * h;
             jumped = active && sg > RV(0);
             if (ANY(jumped)) {
                 realv jx = x + sg * vx, jy = y + sg * vy, jz = z + sg * vz;
@@ -390,6 +434,10 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
                 cx = SEL(cx, RV(0), mv); cy = SEL(cy, RV(0), mv); cz = SEL(cz, RV(0), mv);
                 active = active && !leaves;
                 jumped = mv;
+                if (ckpt_every > 0 && ANY(mv))
+                    ckpt_lanes(ckpt, col, i, ckpt_every, slots, mv, lat, nj, h, x, y, z, vx, vy,
+                               vz);
+                lat = SEL(lat, lat + nj, mv);
 #ifdef FIELD_INTERFACE
                 s_cur = SEL(s_cur, field_interface(FIELD_ARGS, x, y, z), mv);
                 reg = SEL(reg, region_of(FIELD_ARGS, s_cur), mv);
@@ -444,13 +492,22 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
         s_cur = SEL(s_cur, s_new, go);
         reg = SEL(reg, reg_new, go);
 #endif
+#ifdef SKIP_EMPTY
+        if (ckpt_every > 0 && ANY(go))
+            ckpt_lanes(ckpt, col, i, ckpt_every, slots, go, lat, RV(1), h, x, y, z, vx, vy, vz);
+        lat += SEL(RV(0), RV(1), go);
+#else
         if (ckpt_every > 0 && (k + 1) % ckpt_every == 0) {
             __global REAL *c = ckpt + (size_t)((k + 1) / ckpt_every - 1) * 6 * col;
             VSTORE(x, i, c); VSTORE(y, i, c + col); VSTORE(z, i, c + 2 * col);
             VSTORE(vx, i, c + 3 * col); VSTORE(vy, i, c + 4 * col); VSTORE(vz, i, c + 5 * col);
         }
+#endif
     }
     st = SEL(st, RV(ST_TRAPPED), active);
+#ifdef SKIP_EMPTY
+    VSTORE_INT(TO_INTV(lat), i, lattice);
+#endif
 
     realv speed = sqrt(vx * vx + vy * vy + vz * vz);
     realv iv = RV(1) / speed;

@@ -210,3 +210,17 @@ def test_run_keeps_the_parameters_that_validated_best(blob_dataset, tmp_path):
         assert vals[res["best_iteration"]] == best_loss == min(vals.values())
     saved = load_field_file(tmp_path / "run" / "field.npz")
     assert np.allclose(saved.values.ravel(), best)
+
+
+def test_voxel_step_defaults_to_half_a_cell_and_is_recorded(blob_dataset, tmp_path):
+    """A voxel fit without --step steps half a cell of its final grid (the blob's box is
+    100 mm, 12 nodes: 4.55 mm), written into config.toml so that render and --resume use
+    it; --step still wins."""
+    from clrefract.fit import prepare_fit
+
+    fit = prepare_fit(blob_dataset, tmp_path / "a", _cfg(step=0.0, iterations=1))
+    cell = float(np.min(fit.box.size)) / 11
+    assert fit.engine.tracer.step == pytest.approx(cell / 2)
+    assert load_config(tmp_path / "a" / "config.toml", {}).step_mm == pytest.approx(cell / 2)
+    fit = prepare_fit(blob_dataset, tmp_path / "b", _cfg(step=1.5, iterations=1))
+    assert fit.engine.tracer.step == 1.5

@@ -1,14 +1,28 @@
 """Empty-space skipping (issue 12): rays fly straight through cells where eta is constant;
-same exit rays to rounding, far fewer integration steps when the object is small."""
+same exit rays to rounding, far fewer integration steps when the object is small; in fits
+the same loss and gradient, with the occupancy rebuilt as the field trains."""
 
 import numpy as np
 import pytest
+from scipy.ndimage import binary_dilation
 
+from clrefract.adam import Adam
 from clrefract.errors import ClrefractError
 from clrefract.fields.analytic import Luneburg, Sphere
 from clrefract.fields.base import Box
+from clrefract.fields.levelset import LevelSetField
 from clrefract.fields.voxel import VoxelGrid
-from clrefract.occupancy import occupied_cells
+from clrefract.fit import Fit, load_config
+from clrefract.fit_occupancy import TrainingOccupancy
+from clrefract.gradcheck import smooth_env
+from clrefract.gradient import GradientEngine
+from clrefract.occupancy import (
+    distance_of,
+    live_cells_levelset,
+    live_cells_nodes,
+    occupied_cells,
+)
+from clrefract.synth import MakeOptions, make_dataset
 from clrefract.tracer import Tracer
 
 
@@ -58,7 +72,129 @@ def test_occupancy_covers_a_thin_interface():
     assert occ[cells[:, 0], cells[:, 1], cells[:, 2]].all()
 
 
-def test_skipping_is_forward_only():
+def test_discrete_adjoint_refuses_skipping():
     vox = VoxelGrid(np.ones((8, 8, 8)))
-    with pytest.raises(ClrefractError, match="forward only"):
-        Tracer(vox, box=vox.box, skip_empty=True, adjoint=True)
+    with pytest.raises(ClrefractError, match="discrete adjoint"):
+        Tracer(vox, box=vox.box, skip_empty=True, adjoint="discrete")
+
+
+# --- while training: the backward pass flies back through the same empty cells ------------
+BOX = Box((-40, -40, -40), (40, 40, 40), 4.0)
+
+
+def _ball_sdf(p):
+    return np.linalg.norm(p, axis=1) - 8.0
+
+
+def _batch(n=256, seed=0):
+    """Rays over the whole box face (most miss the ball), targets from jittered directions."""
+    rng = np.random.default_rng(seed)
+    o = np.column_stack([rng.uniform(-20, 20, (n, 2)), np.full(n, -150.0)])
+    d = np.column_stack([rng.normal(0, 0.03, (n, 2)), np.ones(n)])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    env = smooth_env(512)
+    return o, d, env, env.lookup(d + rng.normal(0, 0.02, d.shape)).astype(np.float64)
+
+
+def _grads(field, live, precision="float64", lanes=None):
+    o, d, env, tgt = _batch()
+    out = []
+    for skip in (False, True):
+        eng = GradientEngine(
+            field, BOX, step=0.25, precision=precision, lanes=lanes, skip_empty=skip
+        )
+        if skip and live is not None:  # else the engine's own: exact for every parameter
+            eng.tracer.set_occupancy(distance_of(live))
+        out.append(eng.loss_and_grad(o, d, tgt, env))
+    return out
+
+
+@pytest.mark.parametrize("lanes", [1, None])  # a GPU's one ray per work-item; the CPU's
+def test_level_set_gradient_is_the_same_with_skipping(lanes):
+    ls = LevelSetField.from_sdf(_ball_sdf, BOX, 16, eta=1.5, width=2.0)
+    live = live_cells_levelset(ls, BOX, 32, 0.0)
+    assert live.mean() < 0.2  # most of the box is skipped
+    a, b = _grads(ls, None, lanes=lanes)  # the engine's default occupancy is that band
+    assert abs(a.loss - b.loss) <= 1e-12 * a.loss
+    assert np.abs(a.grad - b.grad).max() <= 1e-9 * np.abs(a.grad).max()
+    assert b.steps < a.steps / 2
+
+
+def test_voxel_gradient_is_the_same_on_the_free_nodes():
+    """Nodes whose support reaches a skipped cell lose the gradient of the flights there:
+    a fit zeroes it anyway (they are not free); the free nodes' gradient is unchanged."""
+    vox = VoxelGrid.from_field(
+        Sphere(radius=8.0, eta=1.5, width=3.0), box=BOX, res=16, interp="bspline"
+    )
+    free = binary_dilation(vox.values > 1 + 1e-9, iterations=1)
+    live = live_cells_nodes(free, vox, BOX, 32)
+    a, b = _grads(vox, live)
+    f = free.ravel()
+    assert abs(a.loss - b.loss) <= 1e-12 * a.loss
+    assert np.abs(a.grad[f] - b.grad[f]).max() <= 1e-9 * np.abs(a.grad[f]).max()
+    assert np.abs(a.grad[~f]).max() > 0  # what a fit without skipping would zero too
+
+
+def test_level_set_occupancy_holds_while_no_node_moves_more_than_the_slack():
+    """Any change of the nodes within the slack keeps every cell where eta varies live."""
+    ls = LevelSetField.from_sdf(_ball_sdf, BOX, 16, eta=1.5, width=1.0)
+    slack = 0.8
+    live = live_cells_levelset(ls, BOX, 24, slack, dilate=0)
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        p = ls.data().copy()
+        p[:-1] += rng.uniform(-slack, slack, p.size - 1)
+        moved = LevelSetField(p[:-1].reshape(ls.shape), BOX, 1.5, 1.0)
+        assert not (occupied_cells(moved, BOX, 24, dilate=0) & ~live).any()
+    # a node moved by more than the slack may leave it: the fit then rebuilds at once
+    occ = TrainingOccupancy("levelset", 24, every=10, lr_phi=0.001)
+    assert not occ.due(0, ls) or occ.built_at is None
+    occ.built_at, occ._phi0 = 0, ls.phi.copy()
+    assert not occ.due(5, ls)
+    ls.phi[8, 8, 8] += 2.1 * occ.slack
+    assert occ.due(5, ls) and occ.due(10, ls)
+
+
+def test_hash_grids_refuse_skipping_in_fits():
+    with pytest.raises(ClrefractError, match="hash grid"):
+        load_config(None, dict(field="hashgrid", skip_empty=True))
+    with pytest.raises(ClrefractError, match="continuous"):
+        load_config(None, dict(field="levelset", skip_empty=True, adjoint="discrete"))
+
+
+@pytest.fixture(scope="module")
+def sphere_data(tmp_path_factory):
+    data = tmp_path_factory.mktemp("sphere")
+    make_dataset("sphere", data, MakeOptions(views=4, res=24, env_width=256, volume_res=8))
+    return data
+
+
+def _truth(kind, box):
+    if kind == "levelset":
+        return LevelSetField.from_sdf(
+            lambda p: np.linalg.norm(p, axis=1) - 20.0, box, 16, eta=1.5, width=1.0
+        )
+    return VoxelGrid.from_field(Sphere(radius=20.0, width=3.0), box=box, res=16, interp="bspline")
+
+
+@pytest.mark.parametrize("kind", ["levelset", "voxel"])
+def test_fit_steps_match_without_skipping(sphere_data, tmp_path, kind):
+    """Three Adam steps of a fit from the truth (no start search; a voxel grid frees the
+    nodes near the hull): the same losses with and without skipping, fewer steps with it."""
+    runs = []
+    for skip in (False, True):
+        cfg = load_config(
+            None,
+            dict(field=kind, res=16, batch=1024, precision="float64", skip_empty=skip,
+                 occupancy_every=2, init="hull"),
+        )  # fmt: skip
+        fit = Fit(sphere_data, tmp_path / f"run{skip}", cfg)
+        fit._bind(_truth(kind, fit.box))
+        fit.adam = Adam(len(fit.params), fit._groups())
+        runs.append([fit.step() for _ in range(3)])
+        if skip:
+            assert fit._occ.rebuilds >= 2  # at the bind, and when due
+            assert fit._occ.live_fraction < 0.7
+    for a, b in zip(*runs):
+        assert abs(a["loss"] - b["loss"]) <= 1e-9 * a["loss"]
+        assert b["steps_per_ray"] < a["steps_per_ray"] * 0.8
