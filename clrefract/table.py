@@ -38,7 +38,9 @@ PROTOCOLS: dict[str, dict] = {
         "eval": dict(samples=20000),  # chamfer samples per side (the protocol's 100k elsewhere)
         "methods": {
             "grid": dict(res=16, iterations=10, batch=2048, validate_every=5),
-            "meridian": dict(res=16, iterations=20, batch=2048),
+            "meridian": dict(
+                iterations=20, batch=2048, levels=4, log2_table=12, n_max=32, surface_res=32
+            ),
             "synapse": dict(res=24, iterations=20, batch=2048),
             "vertexnet": dict(
                 iterations=10, batch=2048, levels=4, log2_table=12, distil_iterations=50
