@@ -81,9 +81,10 @@ def test_straight_baseline_fits_a_tiny_scene(tiny, tmp_path, style, settings):
     fitted = load_straight(run / "straight.npz")
     if settings.get("field") == "grid" or style == "synapse":
         empty = StraightModel(np.zeros_like(fitted.vol), fitted.box, 16, fitted.renderer.step)
-    else:  # the field the fit started from (same seed)
+    else:  # the table's meridian is the neural field; compare with where it started
         from clrefract.baselines.neural import NeuralField, NeuralModel
 
+        assert isinstance(fitted, NeuralModel)
         start = NeuralField(fitted.field.config, fitted.box, seed=0)
         empty = NeuralModel(start, fitted.renderer.step)
     before, after = _train_loss(empty, ds), _train_loss(fitted, ds)

@@ -162,6 +162,8 @@ class NeuralRenderer:
             adj[0, : len(pts[sl])] = d_sigma[sl]
             adj[1:, : len(pts[sl])] = np.asarray(d_rgb)[sl].T
             groups = n_pad // self.lanes
+            # work-items, each with its own slot of the MLP's gradient: a few per CPU core
+            # loop over many point groups; a GPU needs many
             items = min(groups, 256 if self.lanes > 1 else 16384)
             g_tab = self._buffer(np.zeros(f.config.n_table_params), write=True)
             part = np.empty(items * n_shared, self.dtype)
@@ -237,7 +239,7 @@ class NeuralModel:
     def render(self, cam, env) -> np.ndarray:
         from .straight import render_view
 
-        return render_view(self.renderer, cam, env)
+        return render_view(self.renderer, cam, env, block=1 << 14)  # ~1M samples a block
 
     def eta(self, pts):
         return None  # no index: eta RMSE is not applicable

@@ -59,11 +59,11 @@ class StraightConfig:
     lr_final: float = 0.1  # learning rates decay exponentially to this fraction
     step: float = 0.0  # sample spacing, mm; 0: half a grid cell, a 64th of the box (neural)
     # the neural field: hash encoding (clrefract.fields.hashgrid's) and MLP shape
-    levels: int = 8
+    levels: int = 6
     features: int = 2
     log2_table: int = 16
     n_min: int = 8
-    n_max: int = 128
+    n_max: int = 64
     hidden: int = 32
     layers: int = 1
     lr_table: float = 0.01
@@ -198,13 +198,13 @@ class StraightModel:
         return density_surface(self.vol.reshape(4, self.res, self.res, self.res)[0], self.box)
 
 
-def render_view(renderer, cam, env) -> np.ndarray:
+def render_view(renderer, cam, env, block: int = 1 << 18) -> np.ndarray:
     """A camera's (H, W, 3) image through a straight-ray renderer, in blocks of rays."""
     o, d = cam.rays()
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     rgb = np.empty((len(o), 3))
-    for s in range(0, len(o), 1 << 18):
-        sl = slice(s, s + (1 << 18))
+    for s in range(0, len(o), block):
+        sl = slice(s, s + block)
         rgb[sl] = renderer.render(o[sl], d[sl], env.lookup(d[sl]))[0]
     return rgb.reshape(cam.height, cam.width, 3)
 
