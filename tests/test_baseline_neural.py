@@ -117,3 +117,12 @@ def test_saved_model_renders_the_same_and_damage_is_one_line(field, tmp_path):
     bad.write_bytes((tmp_path / "straight.npz").read_bytes()[:200])
     with pytest.raises(ClrefractError, match="bad.npz: cannot read"):
         load_straight(bad)
+
+
+def test_meridian_is_neural_by_default_and_a_bad_field_is_refused():
+    from clrefract.baselines.straight import StraightConfig
+
+    assert StraightConfig(style="meridian").resolved().field == "neural"
+    assert StraightConfig(style="meridian", field="grid").resolved().res == 48
+    with pytest.raises(ClrefractError, match="field must be one of grid, neural"):
+        StraightConfig(style="meridian", field="mlp").resolved()
