@@ -119,9 +119,9 @@ def load_model(run: Path, ds, notes: list[str], runtime=None, cfg=None):
     from .fields.base import Box
 
     if (run / "straight.npz").is_file():
-        from .baselines.straight import StraightModel
+        from .baselines.straight import load_straight
 
-        return StraightModel.load(run / "straight.npz", runtime=runtime)
+        return load_straight(run / "straight.npz", runtime=runtime)
     meta = _run_json(run)
     box = Box.from_dict(meta["box"]) if "box" in meta else ds.box
     field = load_field_file(run / "field.npz", box)

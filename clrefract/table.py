@@ -29,8 +29,9 @@ SCENES = ("sphere", "prism", "drop")
 # Budgets. tiny: a smoke test of the whole pipeline (minutes, meaningless scores). quick: the
 # issue's 128 x 128 protocol, sized for about 90 minutes for all twelve runs on 2 CPU cores
 # from costs measured on the sphere with the machine shared (load 7.5, 2026-11-23): dataset
-# 18 s; grid start 147 s then 1.0 s per step of 8192 rays; synapse about 1 s and meridian
-# about 0.3 s per step. Not yet timed end to end. standard: 256 x 256 and four times the
+# 18 s; grid start 147 s then 1.0 s per step of 8192 rays; synapse about 1 s per step; meridian
+# (the neural field) 0.6 s per step, 360 s for its 600 on the sphere (load 4, niced; the 48^3
+# grid stand-in took 0.3 s). Not yet timed end to end. standard: 256 x 256 and four times the
 # iterations. full: the paper's 800 x 800 and 20,000 iterations, for GPUs.
 PROTOCOLS: dict[str, dict] = {
     "tiny": {
@@ -38,7 +39,9 @@ PROTOCOLS: dict[str, dict] = {
         "eval": dict(samples=20000),  # chamfer samples per side (the protocol's 100k elsewhere)
         "methods": {
             "grid": dict(res=16, iterations=10, batch=2048, validate_every=5),
-            "meridian": dict(res=16, iterations=20, batch=2048),
+            "meridian": dict(
+                iterations=20, batch=2048, levels=4, log2_table=12, n_max=32, surface_res=32
+            ),
             "synapse": dict(res=24, iterations=20, batch=2048),
             "vertexnet": dict(
                 iterations=10, batch=2048, levels=4, log2_table=12, distil_iterations=50

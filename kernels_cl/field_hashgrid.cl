@@ -172,6 +172,29 @@ HG_INLINE void hg_encode(FIELD_PARAMS, realv x, realv y, realv z, realv *feat, r
     }
 }
 
+/* Sum of the lanes of a vector (the shared weights of a backward pass get one number per
+ * work-item: hashgrid_adjoint.cl, straight_neural.cl). */
+#if LANES == 1
+#define HG_HSUM(v) (v)
+#elif LANES == 2
+#define HG_HSUM(v) ((v).s0 + (v).s1)
+#elif LANES == 4
+#define HG_HSUM(v) hg_hsum4(v)
+#elif LANES == 8
+#define HG_HSUM(v) hg_hsum4((v).lo + (v).hi)
+#elif LANES == 16
+#define HG_HSUM(v) hg_hsum8((v).lo + (v).hi)
+#endif
+#if LANES >= 4
+HG_INLINE REAL hg_hsum4(CAT(REAL, 4) v) {
+    CAT(REAL, 2) a = v.lo + v.hi;
+    return a.x + a.y;
+}
+#endif
+#if LANES == 16
+HG_INLINE REAL hg_hsum8(CAT(REAL, 8) v) { return hg_hsum4(v.lo + v.hi); }
+#endif
+
 /* softplus(h) and sigmoid(h) = softplus'(h), sharing one exponential */
 HG_INLINE realv hg_softplus(realv h, realv *sig) {
     realv e = exp(-fabs(h));

@@ -34,29 +34,6 @@
 #define FIELD_ACC_ARG , hg_acc
 #define FIELD_ACC_FLUSH(grad, partial, gid)
 
-/* Sum of the lanes of a vector (the shared weights get one number per work-item). */
-#if LANES == 1
-#define HG_HSUM(v) (v)
-#elif LANES == 2
-#define HG_HSUM(v) ((v).s0 + (v).s1)
-#elif LANES == 4
-#define HG_HSUM(v) hg_hsum4(v)
-#elif LANES == 8
-#define HG_HSUM(v) hg_hsum4((v).lo + (v).hi)
-#elif LANES == 16
-#define HG_HSUM(v) hg_hsum8((v).lo + (v).hi)
-#endif
-#if LANES >= 4
-HG_INLINE REAL hg_hsum4(CAT(REAL, 4) v) {
-    CAT(REAL, 2) a = v.lo + v.hi;
-    return a.x + a.y;
-}
-#endif
-#if LANES == 16
-HG_INLINE REAL hg_hsum8(CAT(REAL, 8) v) { return hg_hsum4(v.lo + v.hi); }
-#endif
-
-
 /* Corner weights of level l at the (clamped, normalised) points: table indices idx, weight
  * cw, its gradient (cgx cgy cgz) and Hess(weight) mu (chx chy chz), for the 8 corners. */
 HG_INLINE void hg_corners2(FIELD_PARAMS, const int l, realv cx, realv cy, realv cz, realv ix,

@@ -61,16 +61,32 @@ def _train_loss(model, ds):
     return srgb_loss(col, rgb, ds.pixel_weights("train"))[0]
 
 
-@pytest.mark.parametrize("style", ["synapse", "meridian"])
-def test_straight_baseline_fits_a_tiny_scene(tiny, tmp_path, style):
+@pytest.mark.parametrize(
+    "style, settings",
+    [
+        ("synapse", dict(res=16)),
+        ("meridian", dict(field="grid", res=16)),  # the earlier grid stand-in, still selectable
+        ("meridian", dict(levels=4, log2_table=12, n_max=32, hidden=16, surface_res=32, step=3.0)),
+    ],
+    ids=["synapse", "meridian-grid", "meridian-neural"],
+)
+def test_straight_baseline_fits_a_tiny_scene(tiny, tmp_path, style, settings):
+    from clrefract.baselines.straight import load_straight
     from clrefract.dataset import Dataset
     from clrefract.evaluate import evaluate_run
 
     run = tmp_path / style
-    run_method(style, tiny, run, dict(res=16, iterations=40, batch=4096))
+    run_method(style, tiny, run, dict(iterations=40, batch=4096, **settings))
     ds = Dataset(tiny)
-    fitted = StraightModel.load(run / "straight.npz")
-    empty = StraightModel(np.zeros_like(fitted.vol), fitted.box, 16, fitted.renderer.step)
+    fitted = load_straight(run / "straight.npz")
+    if settings.get("field") == "grid" or style == "synapse":
+        empty = StraightModel(np.zeros_like(fitted.vol), fitted.box, 16, fitted.renderer.step)
+    else:  # the table's meridian is the neural field; compare with where it started
+        from clrefract.baselines.neural import NeuralField, NeuralModel
+
+        assert isinstance(fitted, NeuralModel)
+        start = NeuralField(fitted.field.config, fitted.box, seed=0)
+        empty = NeuralModel(start, fitted.renderer.step)
     before, after = _train_loss(empty, ds), _train_loss(fitted, ds)
     assert after < 0.8 * before, (before, after)
     res = evaluate_run(run, views=1, figures=False, samples=5000)

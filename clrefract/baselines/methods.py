@@ -3,7 +3,8 @@
 - grid: the paper's "Grid-based refraction": clrefract's voxel fit (same curved-ray tracer,
   same adjoint, same start from the visual hull) on a uniform 128^3 grid with trilinear
   weights; only the representation differs from clrefract's own settings;
-- meridian, synapse: the straight-ray volume baselines (clrefract.baselines.straight);
+- meridian, synapse: the straight-ray baselines (clrefract.baselines.straight): a neural
+  field of density and colour (hash encoding + MLP) and a 128^3 voxel grid;
 - vertexnet: the paper's own method, clrefract's hash grid + MLP fit through curved rays.
 
 `settings` (a protocol's, for this method) override the method's defaults; keys that are not
