@@ -1,0 +1,154 @@
+"""Does the photometric gradient carry a glass level set from its visual hull to the object?
+
+    python tools/diag_shape_gradient.py [--scene rounded-cube] [--data bench_results/data]
+        [--rays 16384] [--json bench_results/diag_shape_gradient.json]
+
+On a family solid (quick protocol: 128 x 128, 100 views; made in DATA if missing), a 64^3
+level set with the true index, rays through the masks, rays whose adjoint grew past 30 left
+out. It prints:
+- the visual hull against the truth (cells inside each; how far the hull's extra cells lie
+  from the true surface) and the refraction masks against the true silhouettes;
+- the loss, per pixel and by 8 x 8 blocks, along the straight line in the level set's values
+  from the hull (t = 0) to the truth sampled on the same grid (t = 1);
+- at t = 0, 0.9 and 1: the gradient's cosine with the way to the truth, and the cosine
+  between the gradients of two disjoint halves of the rays (near 1: the rays agree on where
+  the surface should go; near 0: each half fits its own pixels).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def main() -> None:
+    from clrefract.fields.levelset import LevelSetField
+    from clrefract.fit import Fit, load_config, make_field
+    from clrefract.report import scene_truth
+    from clrefract.synth import MakeOptions, make_dataset
+
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--scene", default="rounded-cube")
+    ap.add_argument("--data", default="bench_results/data")
+    ap.add_argument("--rays", type=int, default=16384)
+    ap.add_argument("--json", default="bench_results/diag_shape_gradient.json")
+    args = ap.parse_args()
+    root = Path(args.data) / f"{args.scene}_128"
+    if not (root / "scene.json").is_file():
+        make_dataset(args.scene, root, MakeOptions(views=100, res=128))
+    cfg = load_config(None, dict(field="levelset", res=64, res_schedule=(), batch=8192))
+    fit = Fit(root, root / "diag_run", cfg, stream=io.StringIO())
+    fit.box = fit._object_box()
+    fit._bind(make_field(cfg, fit.box, fit.eta_max, 64), step=cfg.width / 4)
+    truth = scene_truth(fit.ds)
+    hull = fit._hull(64)
+    out: dict = {"scene": args.scene, "rays": args.rays}
+
+    axes = [np.linspace(fit.box.lo[a], fit.box.hi[a], 64) for a in range(3)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    sdf = truth.sdf(pts)[0]
+    inside, in_hull = sdf < 0, hull.distance.ravel() > 0
+    extra = in_hull & ~inside
+    out["hull"] = {
+        "truth_cells": int(inside.sum()),
+        "hull_cells": int(in_hull.sum()),
+        "truth_outside_hull": int((inside & ~in_hull).sum()),
+        "extra_mm_p10_50_90_99": np.percentile(sdf[extra], [10, 50, 90, 99]).round(2).tolist(),
+        **mask_errors(fit, truth),
+    }
+    print("hull:", out["hull"])
+
+    phi_true = LevelSetField.from_sdf(
+        lambda p: truth.sdf(p)[0], fit.box, 64, truth.eta, cfg.width
+    ).data()[:-1]
+    fit._set_start(hull, truth.eta, 0.0)
+    phi_hull = fit.params[:-1].copy()
+    way = phi_true - phi_hull
+    rng = np.random.default_rng(3)
+    marked = fit._marked_pool()
+    pixels = rng.choice(marked, size=min(args.rays, len(marked)), replace=False)
+    blocks = fit._blocks(pixels[: args.rays // 64], 8)
+
+    def at(t: float) -> None:
+        fit.params[:-1] = phi_hull + t * way
+        fit.field.set_data(fit.params)
+        fit.engine.tracer.upload_field()
+
+    out["line"] = []
+    for t in (0.0, 0.25, 0.5, 0.75, 0.9, 1.0):
+        at(t)
+        row = {"t": t, "pixels": loss(fit, pixels, 1), "blocks8": loss(fit, blocks, 64)}
+        out["line"].append(row)
+        print(f"t {t:4.2f}: loss {row['pixels']:.5f}  8x8 blocks {row['blocks8']:.5f}")
+
+    near = np.abs(phi_true) < 3 * cfg.width
+    out["gradient"] = []
+    half = len(pixels) // 2
+    for t in (0.0, 0.9, 1.0):
+        at(t)
+        g1, g2 = (gradient(fit, part) for part in (pixels[:half], pixels[half:]))
+        row = {
+            "t": t,
+            "cos_with_way": -cosine(g1 + g2, way, near),
+            "cos_between_halves": cosine(g1, g2, near),
+        }
+        out["gradient"].append(row)
+        print(
+            f"t {t:4.2f}: cos(-g, way to truth) {row['cos_with_way']:+.4f}  "
+            f"cos(g half 1, g half 2) {row['cos_between_halves']:+.4f}"
+        )
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(out, indent=2))
+
+
+def mask_errors(fit, truth, views: int = 20) -> dict:
+    """Refraction-mask pixels off the true silhouette (sphere-traced straight rays)."""
+    wrong_in = wrong_out = total = 0
+    for cam, mask in list(zip(fit.ds.train, fit._refraction_masks()))[:views]:
+        o, d = cam.rays()
+        t, hit = np.zeros(len(o)), np.zeros(len(o), bool)
+        for _ in range(300):
+            s = truth.sdf(o + t[:, None] * d)[0]
+            hit |= s < 1e-3
+            t += np.maximum(s, 0.05)
+        sil = hit.reshape(mask.shape)
+        wrong_in += int((mask & ~sil).sum())
+        wrong_out += int((~mask & sil).sum())
+        total += int(sil.sum())
+    return {"silhouette_px": total, "mask_not_silhouette": wrong_in, "silhouette_not_mask": wrong_out}
+
+
+def loss(fit, idx, group: int) -> float:
+    from clrefract.gradient import traced_loss
+
+    r = fit.engine.tracer.trace(fit.origins[idx], fit.dirs[idx])
+    return float(
+        traced_loss(
+            fit._env_full, r.status, r.direction, fit.rgb[idx], fit.weights[idx], group=group
+        )[0]
+    )
+
+
+def gradient(fit, idx, growth_max: float = 30.0) -> np.ndarray:
+    """Mean gradient over idx of the level set's values, rays whose adjoint grew past
+    growth_max left out (their paths are chaotic)."""
+    total = np.zeros(len(fit.params))
+    for s in range(0, len(idx), 8192):
+        j = idx[s : s + 8192]
+        args = (fit.origins[j], fit.dirs[j], fit.rgb[j], fit._env_full)
+        kept = fit.engine.loss_and_grad(*args, fit.weights[j]).growth <= growth_max
+        total += fit.engine.loss_and_grad(*args, fit.weights[j] * kept).grad * len(j)
+    return total[:-1] / len(idx)
+
+
+def cosine(a: np.ndarray, b: np.ndarray, where: np.ndarray) -> float:
+    a, b = a[where], b[where]
+    return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-300))
+
+
+if __name__ == "__main__":
+    main()
