@@ -119,7 +119,11 @@ def mask_errors(fit, truth, views: int = 20) -> dict:
         wrong_in += int((mask & ~sil).sum())
         wrong_out += int((~mask & sil).sum())
         total += int(sil.sum())
-    return {"silhouette_px": total, "mask_not_silhouette": wrong_in, "silhouette_not_mask": wrong_out}
+    return {
+        "silhouette_px": total,
+        "mask_not_silhouette": wrong_in,
+        "silhouette_not_mask": wrong_out,
+    }
 
 
 def loss(fit, idx, group: int) -> float:
