@@ -538,7 +538,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="voxel: eta on a grid (default; any medium); levelset: one index inside a sharp "
         "surface (glass, water: the sharpest fits); hashgrid: hash grid + MLP",
     )
-    p.add_argument("--res", type=int, help="grid resolution (voxel values or level set)")
+    p.add_argument(
+        "--res",
+        type=int,
+        help="grid resolution (voxel values or level set); 0: one cell per pixel at the object",
+    )
     p.add_argument("--interp", choices=["bspline", "smoothstep", "trilinear"], help="voxel weights")
     p.add_argument(
         "--init", choices=["hull", "empty"], help="start from the visual hull or eta = 1"

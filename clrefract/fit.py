@@ -46,7 +46,8 @@ RUN_FILES = ("checkpoint.npz", "field.npz", "results.json", "start.json", "run.j
 class FitConfig:
     field: str = "voxel"  # "levelset", "voxel" or "hashgrid"
     # voxel grid (level set: its grid of distances): final resolution, and the
-    # coarse-to-fine resolutions before it (voxel grids only)
+    # coarse-to-fine resolutions before it (voxel grids only); 0: one cell per pixel
+    # footprint at the object (clrefract/resolution.py), recorded in config.toml
     res: int = 64
     res_schedule: tuple = ()  # e.g. (16, 32); the hull start wants the final grid at once
     interp: str = "bspline"  # C2 tricubic B-spline; "smoothstep" (C1) or "trilinear"
@@ -62,6 +63,7 @@ class FitConfig:
     log2_table: int = 16
     n_min: int = 8
     n_max: int = 64  # finest level over the object's box: about 1 mm cells on 128 x 128 views
+    # (0: one cell per pixel footprint, as res = 0)
     hidden: int = 32
     layers: int = 2
     eta_max: float = 0.0  # 0: the scene's upper eta bound (hash grid: see index_headroom)
@@ -159,9 +161,15 @@ class FitConfig:
         if self.field not in FIELDS:
             raise ClrefractError(f"field must be one of {', '.join(FIELDS)}, got {self.field!r}")
         check_fit_config(self)
-        for name in ("iterations", "batch", "res", "queues"):
+        for name in ("iterations", "batch", "queues"):
             if getattr(self, name) < 1:
                 raise ClrefractError(f"{name} must be at least 1, got {getattr(self, name)}")
+        for name in ("res", "n_max"):
+            if getattr(self, name) < 0:
+                raise ClrefractError(
+                    f"{name} must be at least 1 (or 0: from the photographs), "
+                    f"got {getattr(self, name)}"
+                )
         if not (self.step >= 0 and math.isfinite(self.step)):
             raise ClrefractError(f"step must be positive (or 0: automatic), got {self.step}")
         if not (self.width > 0 and math.isfinite(self.width)):
@@ -365,6 +373,8 @@ class Fit:
         self.stream = stream or sys.stderr
         self.runtime = Runtime(device_for(cfg.device), queues=cfg.queues)
         self.box = self.ds.box
+        if cfg.field == "voxel":
+            self._size_from_images()
         if cfg.field == "voxel" and cfg.step == 0:
             cfg.step = voxel_step(self.box, cfg.res)  # recorded in config.toml
         self.eta_max = cfg.eta_max or self.ds.scene.eta_range[1] * 1.05
@@ -403,6 +413,25 @@ class Fit:
             )
 
     # --- field and optimiser -------------------------------------------------------------
+    def _size_from_images(self) -> None:
+        """Resolve res = 0 / n_max = 0 for the current box: one cell per pixel footprint."""
+        from .limits import check_grid
+        from .resolution import cells_for, pixel_footprint_mm
+
+        auto = [n for n in ("res", "n_max") if getattr(self.cfg, n) == 0]
+        if not auto:
+            return
+        foot = pixel_footprint_mm(self.ds.train, np.add(self.box.lo, self.box.hi) / 2)
+        cells = cells_for(float(np.max(self.box.size)), foot)
+        for name in auto:
+            setattr(self.cfg, name, cells)
+        if self.cfg.field in GRID_FIELDS:
+            check_grid("res", self.cfg.res)
+        self.stream.write(
+            f"field: {cells} cells across the {np.max(self.box.size):.0f} mm box, one per "
+            f"pixel footprint at the object ({foot:.2f} mm)\n"
+        )
+
     def _make_field(self, res: int):
         return make_field(self.cfg, self.box, self.eta_max, res)
 
@@ -449,9 +478,10 @@ class Fit:
         )
 
     def start(self) -> None:
-        res = resolution_at(self.cfg, 0)
         if self.cfg.field == "levelset" or (self.cfg.field == "hashgrid" and self._hull_fit()):
             self.box = self._object_box()
+        self._size_from_images()
+        res = resolution_at(self.cfg, 0)
         if self.cfg.field == "hashgrid" and self._hull_fit():
             self._start_hashgrid(res)
         else:
@@ -1092,6 +1122,7 @@ def _start_run(dataset: Path, out: Path, cfg: FitConfig, stream) -> Fit:
     (out / "metrics.jsonl").write_text("")
     t0 = time.perf_counter()
     fit.start()
+    (out / "config.toml").write_text(_toml(fit.cfg))  # with what the start resolved
     write_start_report(fit, time.perf_counter() - t0)
     (out / "run.json").write_text(  # the field's box: a level set's is the object's
         json.dumps(

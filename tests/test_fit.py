@@ -224,3 +224,27 @@ def test_voxel_step_defaults_to_half_a_cell_and_is_recorded(blob_dataset, tmp_pa
     assert load_config(tmp_path / "a" / "config.toml", {}).step_mm == pytest.approx(cell / 2)
     fit = prepare_fit(blob_dataset, tmp_path / "b", _cfg(step=1.5, iterations=1))
     assert fit.engine.tracer.step == 1.5
+
+
+def test_res_zero_sizes_the_grid_from_the_pixel_footprint(blob_dataset, tmp_path):
+    """--res 0: one cell per pixel width at the object. The blob's 32 x 32 views from 200 mm
+    (focal length 59.7 px) see 3.35 mm per pixel, so its 100 mm box gets 30 cells, recorded
+    in config.toml with the half-cell step that follows from them."""
+    from clrefract.dataset import Dataset
+    from clrefract.fit import prepare_fit
+    from clrefract.resolution import cells_for, pixel_footprint_mm
+
+    cams = Dataset(blob_dataset).train
+    foot = pixel_footprint_mm(cams, (0.0, 0.0, 0.0))
+    assert foot == pytest.approx(200.0 / cams[0].fl_x, rel=1e-6)
+    assert 3.0 < foot < 3.7
+    fit = prepare_fit(blob_dataset, tmp_path / "a", _cfg(res=0, res_schedule=(), step=0.0))
+    assert fit.cfg.res == cells_for(100.0, foot) == 30
+    assert fit.field.values.shape == (30, 30, 30)
+    saved = load_config(tmp_path / "a" / "config.toml", {})
+    assert saved.res == 30 and saved.step_mm == pytest.approx(100.0 / 29 / 2)
+    # twice the pixels across the same view: half the footprint
+    assert cells_for(100.0, foot / 2) == 60
+    assert cells_for(100.0, foot / 100) == 256  # capped: the memory of a CPU fit
+    with pytest.raises(ClrefractError, match="res must be"):
+        load_config(None, dict(res=-1)).validate()
