@@ -36,8 +36,10 @@ def test_voxel_adjoint_matches_finite_differences_and_converges_with_step():
     coarse, r_coarse = fd_errors("smoothstep", 2.0)
     fine, r_fine = fd_errors("smoothstep", 0.5)
     # continuous adjoint = discrete gradient up to discretisation error, shrinking with step
-    assert np.median(fine) < 2e-4, fine
-    assert np.median(fine) < np.median(coarse) / 4, (coarse, fine)
+    # every direction, not a median: one bad direction must fail (measured max 8.5e-5 at
+    # step 0.5, 6.5e-4 at step 2)
+    assert np.max(fine) < 2e-4, fine
+    assert np.max(fine) < np.max(coarse) / 4, (coarse, fine)
     # backward re-integration drift (RK4 is not time-reversible) also shrinks with the step
     assert r_fine.drift.max() < r_coarse.drift.max() / 10
     assert r_fine.drift.max() < 1e-3
@@ -47,7 +49,7 @@ def test_checkpoints_bound_the_drift_and_keep_the_gradient():
     plain, r_plain = fd_errors("smoothstep", 2.0)
     ckpt, r_ckpt = fd_errors("smoothstep", 2.0, checkpoint_every=4)
     assert r_ckpt.drift.max() < r_plain.drift.max() / 5, (r_plain.drift.max(), r_ckpt.drift.max())
-    assert np.median(ckpt) < 2 * np.median(plain) + 1e-5, (plain, ckpt)
+    assert np.max(ckpt) < 2 * np.max(plain) + 1e-5, (plain, ckpt)  # measured 8.6e-4, 6.5e-4
 
 
 def test_checkpoints_tame_the_drift_through_a_sharp_interface():
@@ -132,12 +134,12 @@ def test_bspline_voxel_adjoint_matches_finite_differences_and_converges_with_ste
     gradient fast (measured median 1.3e-4 at step 2, 3e-7 at step 0.5)."""
     coarse, r_coarse = fd_errors("bspline", 2.0, eps=1e-7)
     fine, r_fine = fd_errors("bspline", 0.5, eps=1e-7)
-    assert np.median(fine) < 1e-5, fine
-    assert np.median(fine) < np.median(coarse) / 20, (coarse, fine)
+    assert np.max(fine) < 1e-5, fine  # measured max 5.3e-7
+    assert np.max(fine) < np.max(coarse) / 20, (coarse, fine)  # coarse max 2.6e-4
     assert r_fine.drift.max() < r_coarse.drift.max() / 10
     # the original harness (perturbation 1e-6) agrees within its floor
     errs, _ = fd_errors("bspline", 1.0)
-    assert np.median(errs) < 2e-4, errs
+    assert np.max(errs) < 2e-4, errs  # measured max 2.2e-5
 
 
 def test_bspline_adjoint_is_the_same_for_every_lane_width_and_precision():
@@ -162,4 +164,4 @@ def test_bspline_adjoint_is_the_same_for_every_lane_width_and_precision():
 def test_bspline_adjoint_with_3_nodes_along_z():
     """Under 4 nodes along z the kernels gather and splat clamped taps one by one."""
     errs, _ = fd_errors("bspline", 0.5, eps=1e-7, z_nodes=[0, 5, 11])
-    assert np.median(errs) < 3e-5, errs  # measured 2e-6
+    assert np.max(errs) < 3e-5, errs  # measured max 5.3e-6
