@@ -237,11 +237,12 @@ def fd_errors(step, n_dirs=2, seed=1):
 
 
 def test_hashgrid_adjoint_matches_finite_differences_and_converges_with_step():
-    """Measured (median relative error, table / MLP): step 2: 4e-3 / 4e-3, step 1:
-    3e-4 / 8e-4, step 0.5: 1e-5 / 5e-5 (step 0.25: 3e-7 / 8e-7)."""
+    """Measured (worst of two directions, table / MLP): step 2: 4.0e-3 / 4.1e-3, step 1:
+    3.4e-4 / 2.2e-4, step 0.5: 1.3e-5 / 1.5e-5. The worst, not a median: one bad direction
+    must fail."""
     runs = [fd_errors(step) for step in (2.0, 1.0, 0.5)]
     for part in ("table", "mlp"):
-        med = [np.median(errs[part]) for errs, _ in runs]
+        med = [np.max(errs[part]) for errs, _ in runs]
         # continuous adjoint = discrete gradient up to discretisation error
         assert med[2] < 2e-4, (part, med)
         assert med[1] < med[0] / 3 and med[2] < med[1] / 3, (part, med)
