@@ -549,6 +549,20 @@ def _describe_box(
         )
 
 
+def _describe_footprint(cams, centre, size, notes: list[str]) -> None:
+    """What the photographs resolve at the object, and the grid `fit --res 0` picks for it."""
+    from .resolution import cells_for, pixel_footprint_mm
+
+    try:
+        foot = pixel_footprint_mm(cams, centre)
+    except ClrefractError:
+        return  # cameras at the box centre: reported below
+    notes.append(
+        f"one pixel spans {foot:.2f} mm at the box centre: `fit --res 0` gives "
+        f"{cells_for(float(np.max(size)), foot)} cells across the box"
+    )
+
+
 def check_dataset(root, notes: list[str] | None = None, box: Box | None = None) -> list[str]:
     """Every problem found in a dataset folder, as messages naming the file (empty: fine).
     `notes` receives what was assumed for lack of a scene.json or of some of its keys;
@@ -574,6 +588,7 @@ def check_dataset(root, notes: list[str] | None = None, box: Box | None = None) 
         return problems + [str(exc)]
     lo, hi = np.asarray(scene.box.lo), np.asarray(scene.box.hi)
     centre, half = (lo + hi) / 2, np.linalg.norm(hi - lo) / 2
+    _describe_footprint([c for _, cams in splits for c in cams], centre, hi - lo, notes)
     for split, cams in splits:
         suffix = scene.frames or frame_suffix(root, cams)
         for k, cam in enumerate(cams):

@@ -76,7 +76,12 @@ def test_nerf_synthetic_capture_imports_checks_and_fits(rendered, tmp_path, caps
     lo, hi = np.array(info["box"]["lo"]), np.array(info["box"]["hi"])
     assert np.all(lo < -20) and np.all(hi > 20) and np.all(np.abs(lo + hi) < 1)
     assert main(["dataset", "check", str(ds)]) == 0
-    assert "millimetres" not in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "millimetres" not in out
+    # 8 + 2 views, distance / focal length in pixels, median: the grid --res 0 would pick
+    d0, centre = Dataset(ds), (lo + hi) / 2
+    foot = np.median([np.linalg.norm(c.position - centre) / c.fl_x for c in (*d0.train, *d0.test)])
+    assert f"one pixel spans {foot:.2f} mm at the box centre" in out, out
     # the photographs read back as the linear renders, to 8-bit precision
     d = Dataset(ds)
     img = d.image(d.train[0])
