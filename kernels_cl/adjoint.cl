@@ -81,30 +81,51 @@ inline void adjoint_step(FIELD_PARAMS, __global REAL *grad FIELD_ACC_PARAM, cons
 #undef ADV
 }
 
+/* Both variants of the backward pass below share their signature, their start and end, and
+ * the adjoint-growth cap. y = (x, mu), y' = (v, nu) with nu = -lambda; the step k = -h runs
+ * backwards. */
+#define ADJOINT_RAYS_KERNEL                                                                    \
+    __kernel void adjoint_rays(                                                                \
+        FIELD_PARAMS, const REAL h, __global const REAL *pxk, __global const REAL *pyk,        \
+        __global const REAL *pzk, __global const REAL *qxk, __global const REAL *qyk,          \
+        __global const REAL *qzk, __global const int *steps, __global const REAL *mux,         \
+        __global const REAL *muy, __global const REAL *muz, __global REAL *grad,               \
+        __global REAL *partial, __global REAL *bx, __global REAL *by, __global REAL *bz,       \
+        const int max_steps, const int ckpt_every, __global const REAL *ckpt,                  \
+        __global REAL *snap, const REAL growth_max, __global REAL *growth SKIP_ARG)
+
+/* worst: largest distance from a checkpoint when the ray reached it */
+#define ADJOINT_RAY_BEGIN                                                                      \
+    const size_t i = get_global_id(0);                                                         \
+    const size_t col = get_global_size(0) * LANES;                                             \
+    realv x = VLOAD(i, pxk), y = VLOAD(i, pyk), z = VLOAD(i, pzk);                             \
+    realv vx = VLOAD(i, qxk), vy = VLOAD(i, qyk), vz = VLOAD(i, qzk);                          \
+    realv mx = VLOAD(i, mux), my = VLOAD(i, muy), mz = VLOAD(i, muz);                          \
+    realv nx = RV(0), ny = RV(0), nz = RV(0);                                                  \
+    FIELD_ACC_DECL                                                                             \
+    realv worst = RV(0);                                                                       \
+    const realv inv_m0 = RV(1) / fmax(mx * mx + my * my + mz * mz, RV(1e-30));                 \
+    const realv g2 = RV(growth_max * growth_max);                                              \
+    realv grown = RV(1), alive = RV(1)
+
+/* a ray stops once its adjoint grew past growth_max (0: never) */
+#define ADJOINT_GROWTH(active)                                                                 \
+    {                                                                                          \
+        realv m2 = (mx * mx + my * my + mz * mz) * inv_m0;                                     \
+        grown = SEL(grown, fmax(grown, m2), active);                                           \
+        if (growth_max > (REAL)0)                                                              \
+            alive = SEL(alive, RV(0), (active) && m2 > g2);                                    \
+    }
+
+#define ADJOINT_RAY_END                                                                        \
+    VSTORE(x, i, bx); VSTORE(y, i, by); VSTORE(z, i, bz); VSTORE(worst, i, snap);              \
+    VSTORE(sqrt(grown), i, growth);                                                            \
+    FIELD_ACC_FLUSH(grad, partial, i)
+
 #ifndef SKIP_EMPTY
-__kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
-                           __global const REAL *pyk, __global const REAL *pzk,
-                           __global const REAL *qxk, __global const REAL *qyk,
-                           __global const REAL *qzk, __global const int *steps,
-                           __global const REAL *mux, __global const REAL *muy,
-                           __global const REAL *muz, __global REAL *grad,
-                           __global REAL *partial, __global REAL *bx, __global REAL *by,
-                           __global REAL *bz, const int max_steps, const int ckpt_every,
-                           __global const REAL *ckpt, __global REAL *snap, const REAL growth_max,
-                           __global REAL *growth) {
-    const size_t i = get_global_id(0);
-    const size_t col = get_global_size(0) * LANES;
-    /* y = (x, mu), y' = (v, nu) with nu = -lambda; the step k = -h runs backwards */
-    realv x = VLOAD(i, pxk), y = VLOAD(i, pyk), z = VLOAD(i, pzk);
-    realv vx = VLOAD(i, qxk), vy = VLOAD(i, qyk), vz = VLOAD(i, qzk);
-    realv mx = VLOAD(i, mux), my = VLOAD(i, muy), mz = VLOAD(i, muz);
-    realv nx = RV(0), ny = RV(0), nz = RV(0);
+ADJOINT_RAYS_KERNEL {
+    ADJOINT_RAY_BEGIN;
     realv n = TO_REALV(VLOAD(i, steps));
-    FIELD_ACC_DECL
-    realv worst = RV(0); /* largest distance from a checkpoint when the ray reached it */
-    const realv inv_m0 = RV(1) / fmax(mx * mx + my * my + mz * mz, RV(1e-30));
-    const realv g2 = RV(growth_max * growth_max);
-    realv grown = RV(1), alive = RV(1);
     /* s: forward index of the state the step starts from */
     for (int s = max_steps; s > 0; --s) {
         maskv active = RV(s) <= n && alive > RV(0);
@@ -112,10 +133,7 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
             continue;
         adjoint_step(FIELD_ARGS, grad FIELD_ACC_ARG, h, active, &x, &y, &z, &vx, &vy, &vz, &mx,
                      &my, &mz, &nx, &ny, &nz);
-        realv m2 = (mx * mx + my * my + mz * mz) * inv_m0;
-        grown = SEL(grown, fmax(grown, m2), active);
-        if (growth_max > (REAL)0)
-            alive = SEL(alive, RV(0), active && m2 > g2);
+        ADJOINT_GROWTH(active);
         if (ckpt_every > 0 && (s - 1) % ckpt_every == 0 && s > 1) {
             __global const REAL *c = ckpt + (size_t)((s - 1) / ckpt_every - 1) * 6 * col;
             realv cx_ = VLOAD(i, c), cy_ = VLOAD(i, c + col), cz_ = VLOAD(i, c + 2 * col);
@@ -129,9 +147,7 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
             vz = SEL(vz, VLOAD(i, c + 5 * col), active);
         }
     }
-    VSTORE(x, i, bx); VSTORE(y, i, by); VSTORE(z, i, bz); VSTORE(worst, i, snap);
-    VSTORE(sqrt(grown), i, growth);
-    FIELD_ACC_FLUSH(grad, partial, i);
+    ADJOINT_RAY_END;
 }
 #else
 /* With empty-space skipping: `steps` holds each ray's lattice index (trace_rays), and the
@@ -153,28 +169,9 @@ inline realv ckpt_gather(__global const REAL *ckpt, size_t col, size_t i, int ev
     return VLOAD(0, a[2]);
 }
 
-__kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
-                           __global const REAL *pyk, __global const REAL *pzk,
-                           __global const REAL *qxk, __global const REAL *qyk,
-                           __global const REAL *qzk, __global const int *steps,
-                           __global const REAL *mux, __global const REAL *muy,
-                           __global const REAL *muz, __global REAL *grad,
-                           __global REAL *partial, __global REAL *bx, __global REAL *by,
-                           __global REAL *bz, const int max_steps, const int ckpt_every,
-                           __global const REAL *ckpt, __global REAL *snap, const REAL growth_max,
-                           __global REAL *growth SKIP_ARG) {
-    const size_t i = get_global_id(0);
-    const size_t col = get_global_size(0) * LANES;
-    realv x = VLOAD(i, pxk), y = VLOAD(i, pyk), z = VLOAD(i, pzk);
-    realv vx = VLOAD(i, qxk), vy = VLOAD(i, qyk), vz = VLOAD(i, qzk);
-    realv mx = VLOAD(i, mux), my = VLOAD(i, muy), mz = VLOAD(i, muz);
-    realv nx = RV(0), ny = RV(0), nz = RV(0);
+ADJOINT_RAYS_KERNEL {
+    ADJOINT_RAY_BEGIN;
     realv s = TO_REALV(VLOAD(i, steps)); /* lattice index of the state */
-    FIELD_ACC_DECL
-    realv worst = RV(0);
-    const realv inv_m0 = RV(1) / fmax(mx * mx + my * my + mz * mz, RV(1e-30));
-    const realv g2 = RV(growth_max * growth_max);
-    realv grown = RV(1), alive = RV(1);
     const int slots = ckpt_every > 0 ? max(max_steps / ckpt_every, 1) : 0;
     /* each iteration flies or steps at least one lattice index: the loop ends */
     for (int it = 0; it < 2 * max_steps + 2; ++it) {
@@ -195,10 +192,7 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
             adjoint_step(FIELD_ARGS, grad FIELD_ACC_ARG, h, stepping, &x, &y, &z, &vx, &vy, &vz,
                          &mx, &my, &mz, &nx, &ny, &nz);
         s -= SEL(RV(0), SEL(RV(1), nj, fly), active);
-        realv m2 = (mx * mx + my * my + mz * mz) * inv_m0;
-        grown = SEL(grown, fmax(grown, m2), active);
-        if (growth_max > (REAL)0)
-            alive = SEL(alive, RV(0), active && m2 > g2);
+        ADJOINT_GROWTH(active);
         if (ckpt_every > 0) {
             realv sc = s - floor(s / RV(ckpt_every)) * RV(ckpt_every);
             maskv at = active && sc == RV(0) && s >= RV(ckpt_every) &&
@@ -216,8 +210,6 @@ __kernel void adjoint_rays(FIELD_PARAMS, const REAL h, __global const REAL *pxk,
             }
         }
     }
-    VSTORE(x, i, bx); VSTORE(y, i, by); VSTORE(z, i, bz); VSTORE(worst, i, snap);
-    VSTORE(sqrt(grown), i, growth);
-    FIELD_ACC_FLUSH(grad, partial, i);
+    ADJOINT_RAY_END;
 }
 #endif

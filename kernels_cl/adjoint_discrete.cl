@@ -131,13 +131,7 @@ __kernel void adjoint_discrete(FIELD_PARAMS, const REAL h, __global const REAL *
             __global REAL *c = scratch + (size_t)(s - s0) * SCRATCH_COLS * col;
             for (int a = 0; a < SCRATCH_COLS; ++a)
                 VSTORE(Q[a], i, c + a * col);
-            realv nx, ny, nz, nvx, nvy, nvz, ncx, ncy, ncz, ncvx, ncvy, ncvz;
-            KAHAN(x, cx, ix, nx, ncx);
-            KAHAN(y, cy, iy, ny, ncy);
-            KAHAN(z, cz, iz, nz, ncz);
-            KAHAN(vx, cvx, ivx, nvx, ncvx);
-            KAHAN(vy, cvy, ivy, nvy, ncvy);
-            KAHAN(vz, cvz, ivz, nvz, ncvz);
+            KAHAN_STATE;
             x = SEL(x, nx, live); y = SEL(y, ny, live); z = SEL(z, nz, live);
             vx = SEL(vx, nvx, live); vy = SEL(vy, nvy, live); vz = SEL(vz, nvz, live);
             cx = SEL(cx, ncx, live); cy = SEL(cy, ncy, live); cz = SEL(cz, ncz, live);

@@ -160,6 +160,17 @@ inline void ode_step(FIELD_PARAMS, realv h, realv *x, realv *y, realv *z, realv 
         (nc) = ((ns) - (s)) - y_;                                                             \
     } while (0)
 
+/* The state (x, v) plus the increments (ix .. ivz), compensated: the sums in nx .. nvz, their
+ * compensations in ncx .. ncvz (from cx .. cvz). */
+#define KAHAN_STATE                                                                             \
+    realv nx, ny, nz, nvx, nvy, nvz, ncx, ncy, ncz, ncvx, ncvy, ncvz;                          \
+    KAHAN(x, cx, ix, nx, ncx);                                                                 \
+    KAHAN(y, cy, iy, ny, ncy);                                                                 \
+    KAHAN(z, cz, iz, nz, ncz);                                                                 \
+    KAHAN(vx, cvx, ivx, nvx, ncvx);                                                            \
+    KAHAN(vy, cvy, ivy, nvy, ncvy);                                                            \
+    KAHAN(vz, cvz, ivz, nvz, ncvz)
+
 inline maskv outside_box(realv x, realv y, realv z) {
     return x < RV(BOX_LO_X) || x > RV(BOX_HI_X) || y < RV(BOX_LO_Y) || y > RV(BOX_HI_Y) ||
            z < RV(BOX_LO_Z) || z > RV(BOX_HI_Z);
@@ -467,13 +478,7 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
         interface_step(FIELD_ARGS, moving, &hk, &reg_new, &s_new, x, y, z, vx, vy, vz, &ix, &iy,
                        &iz, &ivx, &ivy, &ivz);
 #endif
-        realv nx, ny, nz, nvx, nvy, nvz, ncx, ncy, ncz, ncvx, ncvy, ncvz;
-        KAHAN(x, cx, ix, nx, ncx);
-        KAHAN(y, cy, iy, ny, ncy);
-        KAHAN(z, cz, iz, nz, ncz);
-        KAHAN(vx, cvx, ivx, nvx, ncvx);
-        KAHAN(vy, cvy, ivy, nvy, ncvy);
-        KAHAN(vz, cvz, ivz, nvz, ncvz);
+        KAHAN_STATE;
         maskv bad = !isfinite(nx + ny + nz + nvx + nvy + nvz);
         maskv go = moving && !outside_box(nx, ny, nz) && !bad;
         x = SEL(x, nx, go); y = SEL(y, ny, go); z = SEL(z, nz, go);
