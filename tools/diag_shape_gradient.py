@@ -31,10 +31,8 @@ import numpy as np
 
 
 def main() -> None:
-    from clrefract.fields.levelset import LevelSetField
     from clrefract.fit import Fit, load_config, make_field
     from clrefract.report import scene_truth
-    from clrefract.synth import MakeOptions, make_dataset
 
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--scene", default="rounded-cube")
@@ -47,9 +45,7 @@ def main() -> None:
     ap.add_argument("--precision", default="float32")
     ap.add_argument("--adjoint", default="continuous")
     args = ap.parse_args()
-    root = Path(args.data) / f"{args.scene}_128"
-    if not (root / "scene.json").is_file():
-        make_dataset(args.scene, root, MakeOptions(views=100, res=128))
+    root = quick_dataset(args.scene, args.data)
     cfg = load_config(
         None,
         dict(
@@ -87,9 +83,7 @@ def main() -> None:
     }
     print("hull:", out["hull"])
 
-    phi_true = LevelSetField.from_sdf(
-        lambda p: truth.sdf(p)[0], fit.box, 64, truth.eta, cfg.width
-    ).data()[:-1]
+    phi_true = true_levelset(fit, truth)
     fit._set_start(hull, truth.eta, 0.0)
     phi_hull = fit.params[:-1].copy()
     way = phi_true - phi_hull
@@ -103,9 +97,7 @@ def main() -> None:
         render_targets(fit, rendered, phi_true, truth.eta)
 
     def at(t: float) -> None:
-        fit.params[:-1] = phi_hull + t * way
-        fit.field.set_data(fit.params)
-        fit.engine.tracer.upload_field()
+        set_params(fit, phi_hull + t * way)
 
     out["line"] = []
     for t in (0.0, 0.25, 0.5, 0.75, 0.9, 0.99, 1.0):
@@ -160,13 +152,39 @@ def descend(fit, steps: int, reset, phi_true, near) -> list:
     return rows
 
 
+def quick_dataset(scene: str, data: str) -> Path:
+    """The family solid's quick-protocol dataset (128 x 128, 100 views), made if missing."""
+    from clrefract.synth import MakeOptions, make_dataset
+
+    root = Path(data) / f"{scene}_128"
+    if not (root / "scene.json").is_file():
+        make_dataset(scene, root, MakeOptions(views=100, res=128))
+    return root
+
+
+def true_levelset(fit, truth) -> np.ndarray:
+    """The truth's level-set values on the fit's grid and interface width."""
+    from clrefract.fields.levelset import LevelSetField
+
+    res, width = fit.field.values.shape[0], fit.cfg.width
+    sdf = lambda p: truth.sdf(p)[0]  # noqa: E731
+    return LevelSetField.from_sdf(sdf, fit.box, res, truth.eta, width).data()[:-1]
+
+
+def set_params(fit, phi: np.ndarray, eta: float | None = None) -> None:
+    """Set the level set's values (and index) and send them to the device."""
+    fit.params[:-1] = phi
+    if eta is not None:
+        fit.params[-1] = eta
+    fit.field.set_data(fit.params)
+    fit.engine.tracer.upload_field()
+
+
 def render_targets(fit, idx, phi, eta: float) -> None:
     """Replace the photographs of rays idx by renders of the level set (phi, eta)."""
     from clrefract.gradient import traced_loss
 
-    fit.params[:-1], fit.params[-1] = phi, eta
-    fit.field.set_data(fit.params)
-    fit.engine.tracer.upload_field()
+    set_params(fit, phi, eta)
     for s in range(0, len(idx), 8192):
         j = idx[s : s + 8192]
         r = fit.engine.tracer.trace(fit.origins[j], fit.dirs[j])

@@ -63,10 +63,10 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def main() -> None:
-    from clrefract.fields.levelset import LevelSetField
+    from diag_shape_gradient import quick_dataset, set_params, true_levelset
+
     from clrefract.fit import Fit, load_config
     from clrefract.report import scene_truth
-    from clrefract.synth import MakeOptions, make_dataset
 
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--scene", default="rounded-cube")
@@ -78,9 +78,7 @@ def main() -> None:
     ap.add_argument("--json", default="bench_results/diag_start_shape.json")
     args = ap.parse_args()
     t0 = time.perf_counter()
-    root = Path(args.data) / f"{args.scene}_128"
-    if not (root / "scene.json").is_file():
-        make_dataset(args.scene, root, MakeOptions(views=100, res=128))
+    root = quick_dataset(args.scene, args.data)
     cfg = load_config(None, dict(field="levelset", res=64, res_schedule=(), batch=8192))
     run = root / "diag_start_run"
     run.mkdir(exist_ok=True)
@@ -88,9 +86,7 @@ def main() -> None:
     fit.start()
     truth = scene_truth(fit.ds)
     hull = fit._hull(64)
-    phi_true = LevelSetField.from_sdf(
-        lambda p: truth.sdf(p)[0], fit.box, 64, truth.eta, cfg.width
-    ).data()[:-1]
+    phi_true = true_levelset(fit, truth)
     out: dict = {"scene": args.scene, "start": fit.init_info}
     print(
         f"start: eta {fit.init_info['eta']:.3f}, offset {fit.init_info['offset_mm']:+.2f} mm, "
@@ -102,9 +98,7 @@ def main() -> None:
     pix = np.random.default_rng(3).choice(fit._marked_pool(), size=8192, replace=False)
 
     def exits(params):
-        fit.params[:] = params
-        fit.field.set_data(fit.params)
-        fit.engine.tracer.upload_field()
+        set_params(fit, params[:-1], params[-1])
         r = fit.engine.tracer.trace(fit.origins[pix], fit.dirs[pix])
         return r.status, r.direction / np.linalg.norm(r.direction, axis=1, keepdims=True)
 
@@ -156,10 +150,7 @@ def main() -> None:
     idx = fit._mask_batch(7)
 
     def loss_at(a, e) -> float:
-        fit.params[:-1] = phi0 - np.tensordot(a, modes, axes=1) if len(modes) else phi0
-        fit.params[-1] = e
-        fit.field.set_data(fit.params)
-        fit.engine.tracer.upload_field()
+        set_params(fit, phi0 - np.tensordot(a, modes, axes=1) if len(modes) else phi0, e)
         return fit._forward_loss(idx)
 
     inside = phi_true < 0
@@ -180,9 +171,7 @@ def main() -> None:
             f"{row['held_out_loss']:.5f}, IoU with truth {row['iou']:.3f}"
         )
 
-    fit.params[-1] = 1.0
-    fit.field.set_data(fit.params)
-    fit.engine.tracer.upload_field()
+    set_params(fit, phi0, 1.0)
     out["empty_loss"] = fit._forward_loss(idx)
     out["held_out_empty"] = float(fit.validation_loss())
     out["modes"] = len(modes)
