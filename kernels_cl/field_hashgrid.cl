@@ -117,6 +117,20 @@ HG_INLINE void hg_gather(__global const REAL *restrict fd, const int l, const ui
         }
 }
 
+/* The reverse of hg_gather: atomic adds of vals (same layout) to the entries at idx of
+ * level l of grad; zeros (padding or inactive lanes) are skipped. */
+HG_INLINE void hg_scatter(__global REAL *grad, const int l, const uint *idx, const REAL *vals) {
+    __global REAL *tab = grad + (size_t)l * HG_T * HG_FEATURES;
+    for (int c = 0; c < 8; ++c)
+        for (int q = 0; q < LANES; ++q) {
+            __global REAL *e = tab + (size_t)idx[c * LANES + q] * HG_FEATURES;
+            for (int f = 0; f < HG_FEATURES; ++f) {
+                REAL v = vals[(c * HG_FEATURES + f) * LANES + q];
+                if (v != 0) atomic_add_real(e + f, v);
+            }
+        }
+}
+
 /* Box coordinates of (x, y, z) in [0, 1] (cx cy cz), and 1 where they were not clamped
  * (ix iy iz): the derivative of a clamped coordinate is 0. */
 #define HG_NORMALISE                                                                         \

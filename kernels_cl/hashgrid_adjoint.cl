@@ -116,16 +116,7 @@ HG_INLINE void hg_encode2_reverse(FIELD_PARAMS, __global REAL *grad, realv x, re
                 VSTORE(fb[o] * cw[c] + fmb[o] * wm, c * HG_FEATURES + q, tv);
             }
         }
-        __global REAL *tab = grad + (size_t)l * HG_T * HG_FEATURES;
-        for (int c = 0; c < 8; ++c)
-            for (int q = 0; q < LANES; ++q) {
-                __global REAL *e = tab + (size_t)idx[c * LANES + q] * HG_FEATURES;
-                for (int f = 0; f < HG_FEATURES; ++f) {
-                    REAL v = tv[(c * HG_FEATURES + f) * LANES + q];
-                    if (v != 0) /* inactive lanes, the window's margin */
-                        atomic_add_real(e + f, v);
-                }
-            }
+        hg_scatter(grad, l, idx, tv); /* inactive lanes, the window's margin: 0, skipped */
     }
 }
 

@@ -58,15 +58,7 @@ HG_INLINE void nf_encode_reverse(FIELD_PARAMS, __global REAL *grad, realv x, rea
         for (int c = 0; c < 8; ++c)
             for (int f = 0; f < HG_FEATURES; ++f)
                 VSTORE(fb[l * HG_FEATURES + f] * w[c], c * HG_FEATURES + f, tv);
-        __global REAL *tab = grad + (size_t)l * HG_T * HG_FEATURES;
-        for (int c = 0; c < 8; ++c)
-            for (int q = 0; q < LANES; ++q) {
-                __global REAL *e = tab + (size_t)idx[c * LANES + q] * HG_FEATURES;
-                for (int f = 0; f < HG_FEATURES; ++f) {
-                    REAL v = tv[(c * HG_FEATURES + f) * LANES + q];
-                    if (v != 0) atomic_add_real(e + f, v); /* padding lanes are 0 */
-                }
-            }
+        hg_scatter(grad, l, idx, tv);
     }
 }
 
