@@ -90,6 +90,9 @@ class FitConfig:
     mask_threshold: float = 0.05  # sRGB difference from the straight view that marks a pixel
     free_cells: int = 2  # cells around the hull where eta may change (-1: everywhere)
     hull_tolerance: float = 0.2  # fraction of the views whose mask may have a hole
+    # level sets also try the hull tightened by silhouette-held curvature flow (flat faces
+    # the views roof over come out flat; clrefract/hull_tighten.py), kept if its loss is lower
+    tighten_hull: bool = True
     # share of each training batch drawn from the refraction masks (grown by 2 pixels), the
     # rest from all pixels; 0: all pixels alike (a mask rarely covers more than a tenth)
     mask_share: float = 0.0
@@ -590,19 +593,23 @@ class Fit:
         self._set_start(hull, 1.0, 0.0)
         empty = self._forward_loss(idx)
         if levelset:
-            best = (np.inf, 1.0, 0.0, 0.0)
-            for sigma in hull.width * np.array([0.0, 1.0, 2.0, 3.0, 4.0, 6.0]):
-                # the first smoothing searches index and offset jointly, the others near its pick
-                start = best[1:3] if np.isfinite(best[0]) else None
-                trial = self._search_levelset(hull.smoothed(sigma), idx, etas, start)
-                if trial[0] < best[0]:
-                    best = (*trial, float(sigma))
-            loss, eta, offset, sigma = best
+            best = (np.inf, 1.0, 0.0, 0.0, "visual", hull)
+            for name, shape, sigmas in self._start_shapes(hull):
+                # each shape's first smoothing searches index and offset jointly, the others
+                # near the shape's best pick
+                near = (np.inf, None)
+                for sigma in shape.width * sigmas:
+                    trial = self._search_levelset(shape.smoothed(sigma), idx, etas, near[1])
+                    if trial[0] < near[0]:
+                        near = (trial[0], trial[1:3])
+                    if trial[0] < best[0]:
+                        best = (*trial, float(sigma), name, shape)
+            loss, eta, offset, sigma, kind, hull = best
         else:
             loss, eta, offset = self._search_voxel(hull, idx, etas)
-            sigma = 0.0
+            sigma, kind = 0.0, "visual"
         if not loss < empty:
-            loss, eta, offset, sigma = empty, 1.0, 0.0, 0.0
+            loss, eta, offset, sigma, kind = empty, 1.0, 0.0, 0.0, "visual"
         hull = hull.smoothed(sigma)
         occ = hull.shell(offset).ravel()
         self._set_start(hull, eta, offset)
@@ -612,15 +619,27 @@ class Fit:
             "eta": eta,
             "offset_mm": float(offset),
             "smoothing_mm": float(sigma),
+            "hull": kind,
             "loss": float(loss),
             "loss_empty": float(empty),
         }
         self.stream.write(
-            f"start: visual hull {100 * self.init_info['hull_fraction']:.2f}% of the box, "
+            f"start: {kind} hull {100 * self.init_info['hull_fraction']:.2f}% of the box, "
             f"offset {offset:+.2f} mm, smoothed {sigma:.1f} mm, filled with eta {eta:.3f} "
             f"(loss {loss:.4g}; empty {empty:.4g})\n"
         )
         (self.out / "init.json").write_text(json.dumps(self.init_info, indent=2))
+
+    def _start_shapes(self, hull):
+        """(name, hull, smoothings in cells) the level-set start searches: the visual hull,
+        and where asked the hull tightened onto the faces its views roof over."""
+        shapes = [("visual", hull, np.array([0.0, 1.0, 2.0, 3.0, 4.0, 6.0]))]
+        if self.cfg.tighten_hull:
+            from .hull_tighten import tighten
+
+            tight = tighten(hull, self.box, self.ds.train, self._masks, self.cfg.seed)
+            shapes.insert(0, ("tightened", tight, np.array([0.0, 1.0, 2.0])))
+        return shapes
 
     def _loss_of(self, hull, idx, eta: float, offset: float) -> float:
         self._set_start(hull, eta, offset)
