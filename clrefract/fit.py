@@ -637,7 +637,8 @@ class Fit:
         if self.cfg.tighten_hull:
             from .hull_tighten import tighten
 
-            tight = tighten(hull, self.box, self.ds.train, self._masks, self.cfg.seed)
+            masks = self._refraction_masks()
+            tight = tighten(hull, self.box, self.ds.train, masks, self.cfg.seed)
             shapes.insert(0, ("tightened", tight, np.array([0.0, 1.0, 2.0])))
         return shapes
 

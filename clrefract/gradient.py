@@ -69,10 +69,7 @@ def backward_state_bytes(max_steps: int, every: int, adjoint: str, itemsize: int
 def box_entry(box: Box, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """Where each ray enters the box (the origin itself when it starts inside)."""
     d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = (np.asarray(box.lo) - origins) / d
-        t2 = (np.asarray(box.hi) - origins) / d
-    tmin = np.nan_to_num(np.minimum(t1, t2), nan=-np.inf).max(axis=1)
+    tmin = box.ray_span(origins, d)[0]
     return origins + np.maximum(tmin, 0)[:, None] * d
 
 

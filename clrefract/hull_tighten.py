@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from .baselines.composite import ray_samples
 from .fields.base import Box
 from .hull import Hull
 
@@ -85,36 +86,28 @@ class _RayDepths:
     """The largest value a grid takes along each ray across the box, and where."""
 
     def __init__(self, box: Box, res, origins, dirs, spacing: float, chunk: int = 8192):
-        lo, hi = np.asarray(box.lo), np.asarray(box.hi)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / dirs
-            t1, t2 = (lo - origins) * inv, (hi - origins) * inv
-        near = np.nanmax(np.minimum(t1, t2), axis=1)
-        far = np.nanmin(np.maximum(t1, t2), axis=1)
-        ok = far > near
-        self.o, self.d = origins[ok], dirs[ok]
-        self.near, self.far = near[ok], far[ok]
-        self.lo, self.scale = lo, (np.asarray(res) - 1) / (hi - lo)
-        self.spacing, self.chunk = spacing, chunk
+        near, far = box.ray_span(origins, dirs)
+        hit = far > np.maximum(near, 0.0)
+        self.o, self.d = origins[hit], dirs[hit]
+        self.box, self.spacing, self.chunk = box, spacing, chunk
+        self.scale = (np.asarray(res) - 1) / box.size
 
     def keep(self, which: np.ndarray) -> None:
         self.o, self.d = self.o[which], self.d[which]
-        self.near, self.far = self.near[which], self.far[which]
 
     def deepest(self, grid: np.ndarray):
         n = len(self.o)
         value, where = np.empty(n), np.empty((n, 3))
         for a in range(0, n, self.chunk):
-            s = slice(a, a + self.chunk)
-            count = int(np.ceil((self.far[s] - self.near[s]).max() / self.spacing))
-            t = self.near[s, None] + (np.arange(count) + 0.5) * self.spacing
-            pts = self.o[s, None] + t[..., None] * self.d[s, None]
-            g = (pts - self.lo) * self.scale
-            v = ndimage.map_coordinates(grid, g.reshape(-1, 3).T, order=1, mode="nearest")
-            v = np.where(t < self.far[s, None], v.reshape(t.shape), -np.inf)
-            k = v.argmax(axis=1)
-            rows = np.arange(len(k))
-            value[s], where[s] = v[rows, k], g[rows, k]
+            s = ray_samples(
+                self.o[a : a + self.chunk], self.d[a : a + self.chunk], self.box, self.spacing
+            )
+            g = (s.points - np.asarray(self.box.lo)) * self.scale
+            v = ndimage.map_coordinates(grid, g.T, order=1, mode="nearest")
+            top = np.maximum.reduceat(v, s.starts[:-1])
+            at = np.flatnonzero(v == top[s.ray])
+            first = at[np.unique(s.ray[at], return_index=True)[1]]  # samples come ray by ray
+            value[a : a + len(top)], where[a : a + len(top)] = top, g[first]
         return value, where
 
 

@@ -139,8 +139,10 @@ def test_fit_into_an_unwritable_place(ds, tmp_path, capsys):
         "cannot make",
         keep=tmp_path,
     )
-    if os.geteuid() == 0:
-        pytest.skip("root writes into read-only folders")
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_fit_into_a_read_only_folder(ds, tmp_path, capsys):
     ro = tmp_path / "ro"
     ro.mkdir()
     ro.chmod(0o555)

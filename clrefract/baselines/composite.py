@@ -36,11 +36,8 @@ class Samples:
 def ray_samples(origins: np.ndarray, dirs: np.ndarray, box: Box, step: float) -> Samples:
     """Segment middles of rays with unit directions through the box (none for a miss)."""
     o, d = np.asarray(origins, np.float64), np.asarray(dirs, np.float64)
-    safe = np.where(np.abs(d) > 1e-12, d, 1e-12)
-    ta = (np.asarray(box.lo) - o) / safe
-    tb = (np.asarray(box.hi) - o) / safe
-    t0 = np.maximum(np.minimum(ta, tb).max(axis=1), 0.0)
-    t1 = np.maximum(ta, tb).min(axis=1)
+    t0, t1 = box.ray_span(o, d)
+    t0 = np.maximum(t0, 0.0)
     hit = t1 > t0
     m = np.where(hit, np.maximum(1, np.ceil((t1 - t0) / step)), 0).astype(np.int64)
     dt = np.where(hit, (t1 - t0) / np.maximum(m, 1), 0.0)

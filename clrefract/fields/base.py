@@ -28,6 +28,18 @@ class Box:
     def size(self) -> np.ndarray:
         return np.asarray(self.hi, float) - np.asarray(self.lo, float)
 
+    def ray_span(self, origins: np.ndarray, dirs: np.ndarray):
+        """(near, far): the ray parameters t where each ray o + t d enters and leaves the box
+        (slabs; far <= near for a miss). A direction parallel to a wall from inside its slab
+        bounds nothing on that axis."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (np.asarray(self.lo, float) - origins) / dirs
+            t2 = (np.asarray(self.hi, float) - origins) / dirs
+        lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
+        near = np.where(np.isnan(lo), -np.inf, lo).max(axis=1)
+        far = np.where(np.isnan(hi), np.inf, hi).min(axis=1)
+        return near, far
+
     def defines(self) -> dict:
         d = {f"BOX_LO_{a}": repr(float(v)) for a, v in zip("XYZ", self.lo)}
         d.update({f"BOX_HI_{a}": repr(float(v)) for a, v in zip("XYZ", self.hi)})
