@@ -635,11 +635,12 @@ class Fit:
         and where asked the hull tightened onto the faces its views roof over."""
         shapes = [("visual", hull, np.array([0.0, 1.0, 2.0, 3.0, 4.0, 6.0]))]
         if self.cfg.tighten_hull:
-            from .hull_tighten import tighten
+            from .hull_tighten import FLOW_TIMES, tighten
 
             masks = self._refraction_masks()
             tight = tighten(hull, self.box, self.ds.train, masks, self.cfg.seed)
-            shapes.insert(0, ("tightened", tight, np.array([0.0, 1.0, 2.0])))
+            for time, shape in zip(FLOW_TIMES, tight):
+                shapes.insert(0, (f"tightened {time:g} mm^2", shape, np.array([0.0, 1.0, 2.0])))
         return shapes
 
     def _loss_of(self, hull, idx, eta: float, offset: float) -> float:

@@ -22,23 +22,27 @@ from .hull import Hull
 RIM_PIXELS = 3  # rays this close to a mask's edge hold the shape; inside it they rarely bind
 INTERIOR_SHARE = 0.1  # of the rays deeper inside a mask, checked too (thin parts)
 DEPTH = 0.1  # cells a ray must reach into the shape (at most half the hull's depth on it)
-FLOW_TIME = 110.0  # mean-curvature flow time in mm^2 (800 steps of 0.15 cell^2 at 0.95 mm)
+# mean-curvature flow times in mm^2 at which the flow's shape is taken (110: 800 steps of
+# 0.15 cell^2 at 0.95 mm): a roof's height falls as its face's width squared over the time, so
+# large faces need the longer flows; curved surfaces sag between rims with them
+FLOW_TIMES = (110.0, 330.0)
 PUSH_GAIN = 8.0
 CHECK_EVERY = 5  # flow steps between checks of the rays
 MAX_RES = 64  # finer grids take the flow of this one (its steps grow as 1 / cell^2)
 
 
-def tighten(hull: Hull, box: Box, cameras, masks, seed: int = 0) -> Hull:
-    """The hull (on its grid over `box`) tightened by silhouette-held curvature flow."""
+def tighten(hull: Hull, box: Box, cameras, masks, seed: int = 0, times=FLOW_TIMES) -> list:
+    """The hull (on its grid over `box`) tightened by silhouette-held curvature flow: one
+    Hull per flow time in `times` (increasing), all from one flow."""
     fine = hull.distance.shape
     if max(fine) <= MAX_RES:
-        return _tighten(hull, box, cameras, masks, seed)
+        return _tighten(hull, box, cameras, masks, seed, times)
     coarse = tuple(min(n, MAX_RES) for n in fine)
     down = _resampled(hull.distance, coarse)
     width = hull.width * (max(fine) - 1) / (max(coarse) - 1)
-    tight = _tighten(Hull(down, width, hull.mask_fraction), box, cameras, masks, seed)
-    up = np.minimum(hull.distance, _resampled(tight.distance, fine))
-    return Hull(up, hull.width, hull.mask_fraction)
+    tight = _tighten(Hull(down, width, hull.mask_fraction), box, cameras, masks, seed, times)
+    up = [np.minimum(hull.distance, _resampled(t.distance, fine)) for t in tight]
+    return [Hull(d, hull.width, hull.mask_fraction) for d in up]
 
 
 def _resampled(grid: np.ndarray, shape) -> np.ndarray:
@@ -48,7 +52,7 @@ def _resampled(grid: np.ndarray, shape) -> np.ndarray:
     return ndimage.map_coordinates(grid, coords, order=1, mode="nearest")
 
 
-def _tighten(hull: Hull, box: Box, cameras, masks, seed: int) -> Hull:
+def _tighten(hull: Hull, box: Box, cameras, masks, seed: int, times) -> list:
     res = hull.distance.shape
     h = (np.asarray(box.hi) - np.asarray(box.lo)) / (np.asarray(res) - 1)
     rays = _RayDepths(box, res, *_mask_rays(cameras, masks, seed), 0.5 * float(h.min()))
@@ -58,15 +62,19 @@ def _tighten(hull: Hull, box: Box, cameras, masks, seed: int) -> Hull:
     want = np.minimum(DEPTH * hull.width, 0.5 * need[need > 0])
     d = bound.copy()
     dt = 0.15 * float(h.min()) ** 2
-    steps = max(int(round(FLOW_TIME / dt)), CHECK_EVERY)
-    for step in range(1, steps + 1):
-        d = np.minimum(bound, d + dt * _curvature_motion(d, h))
-        if step % CHECK_EVERY == 0:
-            depth, at = rays.deepest(d)
-            short = depth < want
-            if short.any():
-                d = np.minimum(bound, d + _push(res, at[short], want[short] - depth[short]))
-    return Hull(_redistanced(d, h), hull.width, hull.mask_fraction)
+    out, step = [], 0
+    for time in times:
+        steps = max(int(round(time / dt)), CHECK_EVERY)
+        while step < steps:
+            step += 1
+            d = np.minimum(bound, d + dt * _curvature_motion(d, h))
+            if step % CHECK_EVERY == 0:
+                depth, at = rays.deepest(d)
+                short = depth < want
+                if short.any():
+                    d = np.minimum(bound, d + _push(res, at[short], want[short] - depth[short]))
+        out.append(Hull(_redistanced(d, h), hull.width, hull.mask_fraction))
+    return out
 
 
 def _mask_rays(cameras, masks, seed: int):

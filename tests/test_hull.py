@@ -51,8 +51,8 @@ def test_sphere_masks_and_hull_match_the_silhouette(sphere_dataset):
 
 def test_tightening_keeps_a_sphere(sphere_dataset):
     """A curved surface has no roof to flatten: between the rims that hold it, the flow sags
-    it by their sagitta only. Measured at 25 views of 48 pixels: IoU 0.909 (hull) and
-    0.933 (tightened), 93% of the ball's nodes."""
+    it by their sagitta only. Measured at 25 views of 48 pixels: IoU 0.909 (hull), 0.935 and
+    0.921 (flow times 110 and 330 mm^2), 94% and 92% of the ball's nodes."""
     from clrefract.hull_tighten import tighten
 
     ds = Dataset(sphere_dataset)
@@ -60,7 +60,6 @@ def test_tightening_keeps_a_sphere(sphere_dataset):
     masks = [refraction_mask(c, ds.image(c), env) for c in ds.train]
     box = Box(lo=(-25.0,) * 3, hi=(25.0,) * 3, margin=2.0)
     hull = visual_hull(box, ds.train, masks, 40)
-    tight = tighten(hull, box, ds.train, masks)
     g = np.linspace(-25, 25, 40)
     r = np.linalg.norm(np.stack(np.meshgrid(g, g, g, indexing="ij"), -1), axis=-1)
     ball = r < 20
@@ -69,8 +68,9 @@ def test_tightening_keeps_a_sphere(sphere_dataset):
         a = h.distance > 0
         return (a & ball).sum() / (a | ball).sum()
 
-    assert iou(tight) > iou(hull) - 0.01, (iou(hull), iou(tight))
-    assert 0.88 < (tight.distance > 0).sum() / ball.sum() < 1.05
+    for tight in tighten(hull, box, ds.train, masks):  # one shape per flow time
+        assert iou(tight) > iou(hull) - 0.01, (iou(hull), iou(tight))
+        assert 0.88 < (tight.distance > 0).sum() / ball.sum() < 1.05
 
 
 def test_fit_starts_from_the_hull_filled_with_the_right_index(sphere_dataset, tmp_path):
