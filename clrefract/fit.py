@@ -68,10 +68,9 @@ class FitConfig:
     layers: int = 2
     eta_max: float = 0.0  # 0: the scene's upper eta bound (hash grid: see index_headroom)
     # a hash grid from the hull starts with eta_max this far above the start's index, in
-    # units of index - 1: its sigmoid then saturates inside the glass and keeps eta flat
-    # there (the truth fitted, a 48 x 48 sphere: 29.3 to 29.5 dB at 0 to 6%, 26.7 at 10%,
-    # 25.4 at the scene bound of 15%)
-    index_headroom: float = 0.04
+    # units of index - 1: the MLP's output is then 6 inside the glass, where its sigmoid is
+    # saturated and keeps eta flat (noise in grad eta there bends every ray crossing it)
+    index_headroom: float = 0.0025
     distil_iterations: int = 1000  # fitting the hash grid to the level-set start
     # optimisation
     iterations: int = 600
@@ -153,8 +152,11 @@ class FitConfig:
         if self.step > 0:
             return self.step
         # a quarter of the interface: at half, the truth fitted into a hash grid renders
-        # 5 dB worse (a 48 x 48 sphere, width 1 mm: 24.5 against 29.3 dB)
-        if self.field in ("levelset", "hashgrid"):
+        # 5 dB worse (a 48 x 48 sphere, width 1 mm: 24.5 against 29.3 dB). A hash grid's
+        # surface ramps over a quarter of the width (fit_surface): an eighth
+        if self.field == "hashgrid":
+            return self.width / 8
+        if self.field == "levelset":
             return self.width / 4
         return 1.0  # voxel runs from before voxel_step (a new run records its step)
 
@@ -346,21 +348,32 @@ def hashgrid_config(cfg: FitConfig, eta_max: float = 1.6):
     )
 
 
-def fit_to_field(field, source, width: float, iterations: int, seed: int = 0) -> float:
-    """Fit a hash grid to another field's eta and gradient at points of its box: uniform
-    ones, and as many again around the interfaces (where grad eta is not zero), jittered by
-    half the interface `width`. Returns the RMS error of eta."""
+def fit_to_field(
+    field, source, width: float, iterations: int, seed: int = 0, surface: bool = True
+) -> float:
+    """Fit a hash grid to another field at points of its box: uniform ones, and as many
+    again around the interfaces, jittered by half the interface `width`. A solid with a
+    signed distance (`source.sdf`: a level set, a scene's truth) is fitted as its surface
+    (`fit_surface`) unless `surface` is False, any other field by its eta and gradient.
+    Returns the RMS error of eta against the source."""
     rng = np.random.default_rng([seed, 3])
     lo, size = np.asarray(field.box.lo), field.box.size
     pts = lo + rng.uniform(size=(200_000, 3)) * size
-    eta, grad = source.eval(pts)
-    band = pts[np.linalg.norm(grad, axis=1) > 1e-3]
+    solid = surface and hasattr(source, "sdf")
+    if solid:
+        near = np.abs(source.sdf(pts)[0]) < 2 * width
+    else:
+        near = np.linalg.norm(source.eval(pts)[1], axis=1) > 1e-3
+    band = pts[near]
     if len(band):
         jitter = rng.normal(scale=width / 2, size=(200_000, 3))
         more = np.clip(band[rng.integers(0, len(band), 200_000)] + jitter, lo, lo + size)
-        eta_more, grad_more = source.eval(more)
         pts = np.concatenate([pts, more])
-        eta, grad = np.concatenate([eta, eta_more]), np.concatenate([grad, grad_more])
+    if solid:
+        phi, grad_phi = source.sdf(pts)
+        field.fit_surface(pts, phi, grad_phi, source.eta, width, iterations, seed=seed)
+        return field.eta_rms(pts, source.eval(pts)[0])
+    eta, grad = source.eval(pts)
     return field.fit_values(pts, eta, grad, scale=width, iterations=iterations, seed=seed)
 
 

@@ -79,9 +79,13 @@ def bench_scene(scene: str, args) -> dict:
             lambda p: truth.sdf(p)[0], fit.box, args.grid, truth.eta, cfg.width
         )
     elif cfg.field == "hashgrid":  # the truth fitted the way the start is
+        from dataclasses import replace
+
         from clrefract.fit import fit_to_field
 
-        ceiling = fit.field.__class__(fit.field.config, fit.box, seed=cfg.seed)
+        top = 1 + (truth.eta - 1) * (1 + cfg.index_headroom)  # the truth's index, not the start's
+        hc = replace(fit.field.config, eta_max=top)
+        ceiling = fit.field.__class__(hc, fit.box, seed=cfg.seed)
         fit_to_field(ceiling, truth, cfg.width, cfg.distil_iterations, cfg.seed)
     else:
         ceiling = VoxelGrid.from_field(

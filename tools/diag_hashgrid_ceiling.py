@@ -7,7 +7,8 @@
 On a quick-protocol scene (128 x 128, 100 views; made in DATA if missing) the true object is
 fitted into the hash grid the way a fit's start is (`fit_to_field`, the fit's interface
 width), once per setting (`name:key=value,...` over the fit's defaults; `headroom` is eta_max
-above the index in units of index - 1), and into a 64^3 level set on the same box for
+above the index in units of index - 1; `distil=values` fits eta and its gradient instead of
+the surface), and into a 64^3 level set on the same box for
 comparison. For each it prints the test views' PSNR and SSIM and the angle between grad eta
 and the true surface normal at points within 0.3 mm of the surface (percentiles 50 / 90 /
 99): refraction follows the normals, and the images of glass need them to about a degree.
@@ -27,6 +28,7 @@ import numpy as np
 
 DEFAULT_SETTINGS = (
     "default",
+    "values:distil=values,headroom=0.04",
     "trilinear:interp=trilinear",
     "mlp64:hidden=64",
     "features4:features=4",
@@ -102,6 +104,7 @@ def main() -> None:
         name, kv = parse_setting(spec)
         headroom = kv.pop("headroom", None)
         interp = kv.pop("interp", None)
+        surface = kv.pop("distil", "surface") == "surface"
         cfg = load_config(None, dict(field="hashgrid", **kv))
         fit = Fit(root, root / "diag_ceiling_run", cfg, stream=io.StringIO())
         fit.box = fit._object_box()
@@ -117,7 +120,7 @@ def main() -> None:
             hc = dataclasses.replace(hc, interp=interp)
         field = HashGridField(hc, fit.box, seed=cfg.seed)
         t0 = time.perf_counter()
-        rms = fit_to_field(field, truth, cfg.width, cfg.distil_iterations, cfg.seed)
+        rms = fit_to_field(field, truth, cfg.width, cfg.distil_iterations, cfg.seed, surface)
         report(name, fit, field, rms, time.perf_counter() - t0)
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps({"scene": args.scene, "rows": rows}, indent=2))

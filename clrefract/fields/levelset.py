@@ -93,6 +93,10 @@ class LevelSetField(Field):
         """A quarter of the interface: coarser steps jump over it (see bench_sharp_interface)."""
         return self.width / 4
 
+    def sdf(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """phi (mm, negative inside) and its gradient at points, as a solid's truth gives."""
+        return interpolate(self.phi, self.box, np.asarray(pts, np.float64), "bspline")
+
     def eval(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pts = np.asarray(pts, np.float64)
         g, dg = interpolate(self.phi, self.box, pts, "bspline")
