@@ -71,7 +71,9 @@ class FitConfig:
     # units of index - 1: the MLP's output is then 6 inside the glass, where its sigmoid is
     # saturated and keeps eta flat (noise in grad eta there bends every ray crossing it)
     index_headroom: float = 0.0025
-    distil_iterations: int = 1000  # fitting the hash grid to the level-set start
+    # fitting the hash grid to the level-set start: the true sphere renders at 30.99 dB after
+    # 1000 steps, 31.71 after 2000 (the level set itself: 31.86)
+    distil_iterations: int = 2000
     # optimisation
     iterations: int = 600
     batch: int = 8192
