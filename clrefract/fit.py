@@ -360,23 +360,22 @@ def fit_to_field(
     Returns the RMS error of eta against the source."""
     rng = np.random.default_rng([seed, 3])
     lo, size = np.asarray(field.box.lo), field.box.size
-    pts = lo + rng.uniform(size=(200_000, 3)) * size
     solid = surface and hasattr(source, "sdf")
-    if solid:
-        near = np.abs(source.sdf(pts)[0]) < 2 * width
-    else:
-        near = np.linalg.norm(source.eval(pts)[1], axis=1) > 1e-3
+    sample = source.sdf if solid else source.eval  # (phi, grad phi) or (eta, grad eta)
+    pts = lo + rng.uniform(size=(200_000, 3)) * size
+    value, grad = sample(pts)
+    near = np.abs(value) < 2 * width if solid else np.linalg.norm(grad, axis=1) > 1e-3
     band = pts[near]
     if len(band):
         jitter = rng.normal(scale=width / 2, size=(200_000, 3))
         more = np.clip(band[rng.integers(0, len(band), 200_000)] + jitter, lo, lo + size)
+        value_more, grad_more = sample(more)
         pts = np.concatenate([pts, more])
+        value, grad = np.concatenate([value, value_more]), np.concatenate([grad, grad_more])
     if solid:
-        phi, grad_phi = source.sdf(pts)
-        field.fit_surface(pts, phi, grad_phi, source.eta, width, iterations, seed=seed)
+        field.fit_surface(pts, value, grad, source.eta, width, iterations, seed=seed)
         return field.eta_rms(pts, source.eval(pts)[0])
-    eta, grad = source.eval(pts)
-    return field.fit_values(pts, eta, grad, scale=width, iterations=iterations, seed=seed)
+    return field.fit_values(pts, value, grad, scale=width, iterations=iterations, seed=seed)
 
 
 class Fit:

@@ -701,14 +701,14 @@ class HashGridField(Field):
         direction is the normal, and flat beyond it, at T = logit((eta - 1) / (eta_max - 1))
         inside (eta there is the index) and SURFACE_FAR outside (eta 1 to 1e-6). A smooth
         ramp is far easier for the grid than eta's own sharp step: on the quick protocol's
-        sphere the normals come out 0.6 deg off at the median instead of 1.4 (README)."""
+        sphere the normals come out 0.3 deg off at the median instead of 1.4 (README)."""
         pts = np.asarray(pts, np.float64).reshape(-1, 3)
         phi = np.asarray(phi, np.float64).reshape(-1)
         # the interior's output: eta there is the index (as saturated as the far side if the
         # index is at eta_max; unused when there is no interior)
         lim = 1.0 / (1.0 + math.exp(SURFACE_FAR))
-        r = min(max((eta - 1.0) / (self.config.eta_max - 1.0), lim), 1.0 - lim)
-        t_in = math.log(r / (1.0 - r))
+        frac = min(max((eta - 1.0) / (self.config.eta_max - 1.0), lim), 1.0 - lim)
+        t_in = math.log(frac / (1.0 - frac))
         far = np.where(phi > 0, SURFACE_FAR, t_in)
         t = np.tanh(SURFACE_SLOPE / width * phi / far)
         target = -far * t

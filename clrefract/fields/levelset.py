@@ -99,7 +99,7 @@ class LevelSetField(Field):
 
     def eval(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pts = np.asarray(pts, np.float64)
-        g, dg = interpolate(self.phi, self.box, pts, "bspline")
+        g, dg = self.sdf(pts)
         s = 0.5 - g / self.width
         dn = self.eta - 1.0
         f = dn * _smoother(s)
