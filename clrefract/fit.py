@@ -67,9 +67,15 @@ class FitConfig:
     hidden: int = 32
     layers: int = 2
     eta_max: float = 0.0  # 0: the scene's upper eta bound (hash grid: see index_headroom)
-    # a hash grid from the hull starts with eta_max this far above the start's index, in
-    # units of index - 1: the MLP's output is then 6 inside the glass, where its sigmoid is
-    # saturated and keeps eta flat (noise in grad eta there bends every ray crossing it)
+    # the MLP's output o becomes eta through "ramp", the level set's C2 ramp over o in
+    # [-1, 1] (eta exactly 1 and exactly eta_max beyond it: an interface as a level set's,
+    # traced in steps of width/4), or "sigmoid" (smooth everywhere, what a start from empty
+    # space needs; steps of width/8); "": ramp from the hull, sigmoid from empty space
+    output: str = ""
+    # a sigmoid hash grid from the hull starts with eta_max this far above the start's
+    # index, in units of index - 1: the MLP's output is then 6 inside the glass, where the
+    # sigmoid is saturated and keeps eta flat (noise in grad eta there bends every ray
+    # crossing it); a ramp's eta_max is the index itself, flat past the ramp's top
     index_headroom: float = 0.0025
     # fitting the hash grid to the level-set start: the true sphere renders at 30.99 dB after
     # 1000 steps, 31.71 after 2000 (the level set itself: 31.86)
@@ -157,10 +163,19 @@ class FitConfig:
         # 5 dB worse (a 48 x 48 sphere, width 1 mm: 24.5 against 29.3 dB). A hash grid's
         # surface ramps over a quarter of the width (fit_surface): an eighth
         if self.field == "hashgrid":
-            return self.width / 8
+            return self.width / 4 if self.hashgrid_output == "ramp" else self.width / 8
         if self.field == "levelset":
             return self.width / 4
         return 1.0  # voxel runs from before voxel_step (a new run records its step)
+
+    @property
+    def hashgrid_output(self) -> str:
+        return self.output or ("ramp" if self.init == "hull" else "sigmoid")
+
+    def hashgrid_eta_max(self, index: float) -> float:
+        """A hash grid's eta_max for glass of this index (index_headroom, sigmoid only)."""
+        room = self.index_headroom if self.hashgrid_output == "sigmoid" else 0.0
+        return 1 + (index - 1) * (1 + room)
 
     def validate(self) -> None:
         if self.box:
@@ -187,6 +202,13 @@ class FitConfig:
             )
         if not (0 <= self.index_headroom < 10):
             raise ClrefractError(f"index_headroom must be in [0, 10), got {self.index_headroom}")
+        if self.output not in ("", "ramp", "sigmoid"):
+            raise ClrefractError(f"output must be 'ramp' or 'sigmoid', got {self.output!r}")
+        if self.field == "hashgrid" and self.output == "ramp" and self.init != "hull":
+            raise ClrefractError(
+                "a hash grid with the ramp output starts from the visual hull (init = 'hull'):"
+                " from empty space its output is flat and has no gradient"
+            )
         if self.field == "levelset" and self.init != "hull":
             raise ClrefractError("a level-set fit starts from the visual hull (init = 'hull')")
         if self.init not in ("hull", "empty"):
@@ -347,6 +369,7 @@ def hashgrid_config(cfg: FitConfig, eta_max: float = 1.6):
         hidden=cfg.hidden,
         layers=cfg.layers,
         eta_max=eta_max,
+        output=cfg.hashgrid_output,
     )
 
 
@@ -372,6 +395,11 @@ def fit_to_field(
         value_more, grad_more = sample(more)
         pts = np.concatenate([pts, more])
         value, grad = np.concatenate([value, value_more]), np.concatenate([grad, grad_more])
+    if not solid and field.config.output == "ramp":
+        raise ClrefractError(
+            "a hash grid with the ramp output is fitted to a solid's signed distance, and "
+            f"this {type(source).__name__} has none: use output = 'sigmoid'"
+        )
     if solid:
         field.fit_surface(pts, value, grad, source.eta, width, iterations, seed=seed)
         return field.eta_rms(pts, source.eval(pts)[0])
@@ -517,7 +545,7 @@ class Fit:
         self._bind(make_field(guide_cfg, self.box, self.eta_max, res), step=guide_cfg.step)
         self._fill_hull()
         if not self.cfg.eta_max:
-            self.eta_max = 1 + (self.init_info["eta"] - 1) * (1 + self.cfg.index_headroom)
+            self.eta_max = self.cfg.hashgrid_eta_max(self.init_info["eta"])
         rms = self.start_from(self.field)
         self.init_info["distilled_rms"] = rms
         self.stream.write(f"start: hash grid fitted to the level-set start (eta RMS {rms:.4f})\n")

@@ -14,12 +14,16 @@
  * MLP: vectorised across the lanes (the weights are the same for every ray): forward mode
  * carries each unit's value and its 3 spatial derivatives, dh = W df,
  * d softplus(h) = sigmoid(h) dh. The last hidden layer is fused into the output unit, so only
- * one hidden layer is ever stored. o -> g = 1 + (eta_max - 1) sigmoid(o);
+ * one hidden layer is ever stored. o -> g = 1 + (eta_max - 1) sigmoid(o), or with HG_RAMP
+ * 1 + (eta_max - 1) S((o + 1) / 2), S the C2 quintic (flat beyond o = -1 and 1);
  * eta = 1 + W (g - 1), W the box window. With LANES == 1 everything is scalar (GPU layout).
  */
 
 #ifndef HG_SMOOTH
 #define HG_SMOOTH 1
+#endif
+#ifndef HG_RAMP
+#define HG_RAMP 0
 #endif
 
 /* PoCL builds with -Dinline= and may leave large helpers as calls; a call that takes private
@@ -223,6 +227,22 @@ HG_INLINE realv hg_sigmoid(realv h) {
     return SEL(e * r, r, h >= RV(0));
 }
 
+/* The output map G(o) = g - 1 and its derivatives G', G'' in o. */
+HG_INLINE realv hg_output(realv o, const REAL k, realv *G1, realv *G2) {
+#if HG_RAMP
+    realv t = (o + RV(1)) * RV(0.5);
+    *G1 = RV(k * (REAL)0.5) * smoother_d(t);
+    *G2 = RV(k * (REAL)0.25) * smoother_dd(t);
+    return RV(k) * smoother(t);
+#else
+    realv s = hg_sigmoid(o);
+    realv G = RV(k) * s;
+    *G1 = G * (RV(1) - s);
+    *G2 = *G1 * (RV(1) - RV(2) * s);
+    return G;
+#endif
+}
+
 /* Four units j .. j+3 of a dense layer, h = W a + b, and the derivatives dh = W da (forward
  * mode): each input vector is loaded once for 16 multiply-adds. */
 HG_INLINE void hg_units4(__global const REAL *W, __global const REAL *B, const int n_in,
@@ -326,8 +346,8 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
     realv ox, oy, oz;
     realv o = hg_mlp(fd, feat, fx, fy, fz, &ox, &oy, &oz);
     const REAL k = fp[0] - (REAL)1;
-    realv so = hg_sigmoid(o);
-    realv g1 = k * so, dg = k * so * (RV(1) - so);
+    realv dg, dg2;
+    realv g1 = hg_output(o, k, &dg, &dg2);
     realv wx, wy, wz;
     realv w = box_window(x, y, z, &wx, &wy, &wz);
     *gx = wx * g1 + w * dg * ox;
@@ -335,3 +355,41 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
     *gz = wz * g1 + w * dg * oz;
     return RV(1) + w * g1;
 }
+
+#if HG_RAMP && !defined(NO_INTERFACE_STEPS)
+/* Interface steps (rendering only, as a level set's): the ramp's higher derivatives jump
+ * where o = -1 and 1, and steps land there. */
+#define FIELD_INTERFACE 1
+#define INTERFACE_LO (-(REAL)1)
+#define INTERFACE_HI ((REAL)1)
+inline realv field_interface(FIELD_PARAMS, realv x, realv y, realv z) {
+    realv feat[HG_NF], fx[HG_NF], fy[HG_NF], fz[HG_NF];
+    hg_encode(FIELD_ARGS, x, y, z, feat, fx, fy, fz);
+    realv ox, oy, oz;
+    return hg_mlp(fd, feat, fx, fy, fz, &ox, &oy, &oz);
+}
+/* One region's formula continued past its edges: region -1 air (G = 0), 0 the ramp (the
+ * quintic, unclamped), +1 glass (G = eta_max - 1), -2 by position. */
+inline realv field_eval_region(FIELD_PARAMS, realv x, realv y, realv z, realv region, realv *gx,
+                               realv *gy, realv *gz) {
+    realv feat[HG_NF], fx[HG_NF], fy[HG_NF], fz[HG_NF];
+    hg_encode(FIELD_ARGS, x, y, z, feat, fx, fy, fz);
+    realv ox, oy, oz;
+    realv o = hg_mlp(fd, feat, fx, fy, fz, &ox, &oy, &oz);
+    const REAL k = fp[0] - (REAL)1;
+    realv pos = SEL(SEL(RV(0), RV(1), o > RV(1)), RV(-1), o < RV(-1));
+    realv reg = SEL(region, pos, region < RV(-1.5));
+    realv t = (o + RV(1)) * RV(0.5);
+    realv band = SEL(RV(0), RV(1), reg == RV(0));
+    realv p = t * t * t * (t * (t * RV(6) - RV(15)) + RV(10));
+    realv dp = RV(30) * t * t * (t - RV(1)) * (t - RV(1));
+    realv g1 = RV(k) * SEL(band * p, RV(1), reg > RV(0.5));
+    realv dg = RV(k * (REAL)0.5) * band * dp;
+    realv wx, wy, wz;
+    realv w = box_window(x, y, z, &wx, &wy, &wz);
+    *gx = wx * g1 + w * dg * ox;
+    *gy = wy * g1 + w * dg * oy;
+    *gz = wz * g1 + w * dg * oz;
+    return RV(1) + w * g1;
+}
+#endif

@@ -2,7 +2,7 @@
  * Hess(eta) mu, and the splat of w * d/dtheta [eta (mu . grad eta)] into the parameters
  * (the contract of voxel_adjoint.cl; adjoint.cl calls field_adjoint).
  *
- * eta = 1 + W G(o), G = (eta_max - 1) sigmoid(o), o = MLP(features(x)).
+ * eta = 1 + W G(o), G = (eta_max - 1) sigmoid(o) (or the ramp, HG_RAMP), o = MLP(features(x)).
  * Forward mode carries, for every feature and hidden unit, its value a, gradient grad a and
  * Hess(a) mu (7 numbers): d softplus(h) = s dh, Hess softplus(h) mu = s' (mu . dh) dh +
  * s Hess(h) mu (s = sigmoid(h)); smoothstep corner weights have second derivatives.
@@ -316,8 +316,8 @@ HG_ADJ_FN realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx,
     }
     /* output map and window: eta = 1 + W G(o) */
     const REAL k = fp[0] - (REAL)1;
-    realv so = hg_sigmoid(o);
-    realv G = k * so, G1 = G * (RV(1) - so), G2 = G1 * (RV(1) - RV(2) * so);
+    realv G1, G2;
+    realv G = hg_output(o, k, &G1, &G2);
     realv gW[3], HW[6];
     realv Wn = window_hess_v(x, y, z, gW, HW);
     realv gWx = gW[0], gWy = gW[1], gWz = gW[2];

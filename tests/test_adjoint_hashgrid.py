@@ -127,6 +127,7 @@ CONFIGS = {
     "two-layer": SMALL,
     # one hidden layer, width not a multiple of 4, three features per level
     "one-layer": {**SMALL, "hidden": 10, "features": 3, "layers": 1},
+    "ramp": {**SMALL, "output": "ramp"},
 }
 
 
@@ -137,6 +138,8 @@ CONFIGS = {
         ("two-layer", "float64", 8, 1e-10),
         ("two-layer", "float32", 16, 2e-4),
         ("one-layer", "float64", 4, 1e-10),
+        ("ramp", "float64", 8, 1e-10),
+        ("ramp", "float32", 16, 2e-4),
     ],
 )
 def test_kernel_adjoint_terms_match_the_reference(name, precision, lanes, tol):

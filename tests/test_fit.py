@@ -248,3 +248,21 @@ def test_res_zero_sizes_the_grid_from_the_pixel_footprint(blob_dataset, tmp_path
     assert cells_for(100.0, foot / 100) == 256  # capped: the memory of a CPU fit
     with pytest.raises(ClrefractError, match="res must be"):
         load_config(None, dict(res=-1)).validate()
+
+
+def test_hash_grid_output_follows_the_start_and_sets_step_and_eta_max():
+    """The ramp output (a level set's interface: steps of width/4, eta_max the index) for a
+    start from the hull; the sigmoid (steps of width/8, eta_max with headroom) from empty
+    space, where the ramp would have no gradient; a ramp asked of an empty start is refused."""
+    hull = load_config(None, dict(field="hashgrid", width=1.0))
+    assert hull.hashgrid_output == "ramp" and hull.step_mm == 0.25
+    assert hull.hashgrid_eta_max(1.5) == 1.5
+    empty = load_config(None, dict(field="hashgrid", width=1.0, init="empty"))
+    assert empty.hashgrid_output == "sigmoid" and empty.step_mm == 0.125
+    assert empty.hashgrid_eta_max(1.5) == pytest.approx(1.5 + 0.5 * empty.index_headroom)
+    chosen = load_config(None, dict(field="hashgrid", width=1.0, output="sigmoid"))
+    assert chosen.hashgrid_output == "sigmoid" and chosen.step_mm == 0.125
+    with pytest.raises(ClrefractError, match="ramp output starts from the visual hull"):
+        load_config(None, dict(field="hashgrid", init="empty", output="ramp")).validate()
+    with pytest.raises(ClrefractError, match="output must be"):
+        load_config(None, dict(field="hashgrid", output="tanh")).validate()

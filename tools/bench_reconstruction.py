@@ -83,7 +83,7 @@ def bench_scene(scene: str, args) -> dict:
 
         from clrefract.fit import fit_to_field
 
-        top = 1 + (truth.eta - 1) * (1 + cfg.index_headroom)  # the truth's index, not the start's
+        top = cfg.hashgrid_eta_max(truth.eta)  # the truth's index, not the start's
         hc = replace(fit.field.config, eta_max=top)
         ceiling = fit.field.__class__(hc, fit.box, seed=cfg.seed)
         fit_to_field(ceiling, truth, cfg.width, cfg.distil_iterations, cfg.seed)

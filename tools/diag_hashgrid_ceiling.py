@@ -114,8 +114,10 @@ def main() -> None:
                 lambda p, t=truth: t.sdf(p)[0], fit.box, 64, truth.eta, cfg.width
             )
             report("level set 64^3", fit, level, 0.0, 0.0)
-        room = cfg.index_headroom if headroom is None else headroom
-        hc = hashgrid_config(cfg, 1 + (truth.eta - 1) * (1 + room))
+        top = cfg.hashgrid_eta_max(truth.eta)
+        if headroom is not None:
+            top = 1 + (truth.eta - 1) * (1 + headroom)
+        hc = hashgrid_config(cfg, top)
         if interp:
             hc = dataclasses.replace(hc, interp=interp)
         field = HashGridField(hc, fit.box, seed=cfg.seed)

@@ -64,6 +64,11 @@ def _smoother_d(t):
     return np.where(inside, 30 * t * t * (t * (t - 2) + 1), 0.0)
 
 
+def _smoother_dd(t):
+    inside = (t > 0) & (t < 1)
+    return np.where(inside, 60 * t * (1 - t) * (1 - 2 * t), 0.0)
+
+
 def box_window(box: Box, pts: np.ndarray):
     """W(x) and grad W: 0 within margin of a wall, 1 beyond twice the margin (C2)."""
     lo, hi, m = np.asarray(box.lo), np.asarray(box.hi), box.margin

@@ -14,8 +14,11 @@ Layout, shared with kernels_cl/field_hashgrid.cl:
   in uint32 arithmetic (T = 2^log2_table). Feature f of level l is the interpolation of the
   table entries tables[l, index, f]; the L*F features are ordered (l, f), level slowest.
 - MLP. features (L*F) -> `layers` hidden layers of width `hidden` with softplus -> 1 output o.
-  g = 1 + (eta_max - 1) sigmoid(o) in [1, eta_max]; eta = 1 + W(x) (g - 1) with W the box
-  window, so rays leave the box in straight lines. The gradient is exact (forward mode).
+  g = 1 + (eta_max - 1) sigmoid(o) in [1, eta_max] (output "sigmoid"), or
+  g = 1 + (eta_max - 1) S((o + 1) / 2) with S the C2 quintic of the level sets (output
+  "ramp": exactly 1 below o = -1 and eta_max above 1, kinks that rendering steps land on);
+  eta = 1 + W(x) (g - 1) with W the box window, so rays leave the box in straight lines.
+  The gradient is exact (forward mode).
 - Parameters: ONE flat float64 vector (data(), fd on the device):
       tables  L*T*F  as tables[l, index, f] in C order, offset 0 (`table_slice`)
       MLP     layer by layer: W (out x in, row-major) then b (out), for the hidden layers and
@@ -23,7 +26,7 @@ Layout, shared with kernels_cl/field_hashgrid.cl:
 - Small parameters (params(), fp on the device): [eta_max, N_0 .. N_{L-1},
   dense_0 .. dense_{L-1}] (dense_l = 1.0 for a directly indexed level, 0.0 for a hashed one).
 - Build defines: FIELD_HASHGRID, HG_LEVELS, HG_FEATURES, HG_LOG2T, HG_HIDDEN, HG_LAYERS,
-  HG_SMOOTH and HG_MLP_OFFSET (= L*T*F, where the MLP starts in fd).
+  HG_SMOOTH, HG_RAMP and HG_MLP_OFFSET (= L*T*F, where the MLP starts in fd).
 - Backward pass (kernels_cl/hashgrid_adjoint.cl, reference `adjoint_terms`): eta, grad eta,
   Hess(eta) mu by second-order forward mode, then reverse mode of the splat
   w d/dtheta [eta (mu . grad eta)] into the parameters. Table entries get atomic adds; the
@@ -43,9 +46,10 @@ import numpy as np
 
 from ..errors import ClrefractError
 from ..imageio import atomic_path
-from .base import Box, Field, box_window
+from .base import Box, Field, _smoother, _smoother_d, _smoother_dd, box_window
 
 INTERPS = ("smoothstep", "trilinear")
+OUTPUTS = ("sigmoid", "ramp")
 PRIMES = (1, 2654435761, 805459861)  # spatial-hash multipliers of x, y, z (instant-ngp)
 _CHUNK = 1 << 15  # points per block in the NumPy reference (bounds temporary memory)
 # fit_surface: the output's slope across the surface, per interface width (a 10-90% ramp of
@@ -55,6 +59,11 @@ SURFACE_SLOPE = 16.0
 SURFACE_FAR = 14.0
 SURFACE_LR = (1e-1, 1e-2)  # Adam rates of tables and MLP
 SURFACE_GRAD_WEIGHT = 16.0  # of grad o's squared error (width units) against o's
+# the same for the ramp output (o = -2 phi / width across the interface); air is held
+# below RAMP_FLOOR, a margin under the ramp's foot at -1
+RAMP_LR = (1e-1, 1e-2)
+RAMP_GRAD_WEIGHT = 16.0
+RAMP_FLOOR = -1.25
 
 
 @dataclass(frozen=True)
@@ -70,6 +79,7 @@ class HashGridConfig:
     layers: int = 2
     eta_max: float = 1.6
     interp: str = "smoothstep"
+    output: str = "sigmoid"
 
     def __post_init__(self):
         ints = ("levels", "features", "log2_table", "n_min", "n_max", "hidden", "layers")
@@ -95,6 +105,8 @@ class HashGridConfig:
         object.__setattr__(self, "eta_max", float(self.eta_max))
         if self.interp not in INTERPS:
             raise ClrefractError(f"hash grid interp must be one of {INTERPS}, got {self.interp!r}")
+        if self.output not in OUTPUTS:
+            raise ClrefractError(f"hash grid output must be one of {OUTPUTS}, got {self.output!r}")
         if self.n_table_params >= 1 << 31:
             raise ClrefractError(
                 f"hash grid tables of {self.n_table_params} entries exceed 2^31 (kernel indices)"
@@ -189,6 +201,25 @@ def _sigmoid(h):
     return np.where(h >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
 
 
+def _output_map(o, k: float, ramp: bool):
+    """G(o) = g - 1 and its first two derivatives in o: k sigmoid(o), or k S((o + 1) / 2)
+    with S the C2 quintic (exactly 0 below o = -1 and k above 1, as a level set's ramp)."""
+    if ramp:
+        t = 0.5 * (o + 1)
+        return k * _smoother(t), 0.5 * k * _smoother_d(t), 0.25 * k * _smoother_dd(t)
+    so = _sigmoid(o)
+    g0 = k * so
+    g1 = g0 * (1 - so)
+    return g0, g1, g1 * (1 - 2 * so)
+
+
+def _smoother_inverse(y: float) -> float:
+    """t in [0, 1] with S(t) = y, 0 < y < 1 (S the C2 quintic, increasing)."""
+    from scipy.optimize import brentq
+
+    return float(brentq(lambda t: float(_smoother(t)) - y, 0.0, 1.0, xtol=1e-14))
+
+
 def _axis_weights(t, smooth: bool):
     """s(t), s'(t), s''(t) of the high corner's weight along one axis."""
     if smooth:
@@ -201,16 +232,7 @@ def _window_hessian(box: Box, pts: np.ndarray):
     lo, hi, m = np.asarray(box.lo), np.asarray(box.hi), box.margin
     d0, d1 = (pts - lo) / m - 1, (hi - pts) / m - 1
 
-    def s(t):
-        t = np.clip(t, 0.0, 1.0)
-        return t * t * t * (t * (t * 6 - 15) + 10)
-
-    def ds(t):
-        return np.where((t > 0) & (t < 1), 30 * t * t * (t * (t - 2) + 1), 0.0)
-
-    def dds(t):
-        return np.where((t > 0) & (t < 1), 60 * t * (1 - t) * (1 - 2 * t), 0.0)
-
+    s, ds, dds = _smoother, _smoother_d, _smoother_dd
     a = s(d0) * s(d1)  # per-axis factors (n, 3) and their derivatives in x
     da = (ds(d0) * s(d1) - s(d0) * ds(d1)) / m
     dda = (dds(d0) * s(d1) - 2 * ds(d0) * ds(d1) + s(d0) * dds(d1)) / m**2
@@ -354,6 +376,7 @@ class HashGridField(Field):
             "HG_HIDDEN": c.hidden,
             "HG_LAYERS": c.layers,
             "HG_SMOOTH": int(c.interp == "smoothstep"),
+            "HG_RAMP": int(c.output == "ramp"),
             "HG_MLP_OFFSET": c.n_table_params,
         }
 
@@ -489,16 +512,20 @@ class HashGridField(Field):
         w, b = layers[-1]
         return a @ w[0] + b[0], (da @ w[0]).reshape(3, n).T
 
+    def _output(self, o):
+        """G(o) = g - 1 and its first two derivatives (the config's output map)."""
+        c = self.config
+        return _output_map(o, c.eta_max - 1.0, c.output == "ramp")
+
     def eval(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pts = np.asarray(pts, np.float64).reshape(-1, 3)
         eta = np.empty(len(pts))
         grad = np.empty((len(pts), 3))
-        k = self.config.eta_max - 1.0
         for a in range(0, len(pts), _CHUNK):
             p = pts[a : a + _CHUNK]
             o, do = self.mlp(*self.encode(p))
-            sg = _sigmoid(o)
-            g1, dg1 = k * sg, (k * sg * (1 - sg))[:, None] * do
+            g1, dg, _ = self._output(o)
+            dg1 = dg[:, None] * do
             w, dw = box_window(self.box, p)
             eta[a : a + _CHUNK] = 1.0 + w * g1
             grad[a : a + _CHUNK] = dw * g1[:, None] + w[:, None] * dg1
@@ -596,11 +623,7 @@ class HashGridField(Field):
         mu = np.asarray(mu, np.float64).reshape(-1, 3)
         w = np.ones(len(pts)) if w is None else np.asarray(w, np.float64)
         o, og, oh, tape = self._forward2(pts, mu, p)
-        k = self.config.eta_max - 1.0
-        so = _sigmoid(o)
-        g0 = k * so  # G(o) = g - 1, and its derivatives G', G''
-        g1 = g0 * (1 - so)
-        g2 = g1 * (1 - 2 * so)
+        g0, g1, g2 = self._output(o)  # G(o) = g - 1, and its derivatives G', G''
         win, gw, hw = _window_hessian(self.box, pts)
         eta = 1 + win * g0
         ge = g0[:, None] * gw + (win * g1)[:, None] * og
@@ -660,14 +683,11 @@ class HashGridField(Field):
         of eta over all the points."""
         pts = np.asarray(pts, np.float64).reshape(-1, 3)
         eta = np.asarray(eta, np.float64).reshape(-1)
-        k = self.config.eta_max - 1.0
         win, gwin, _ = _window_hessian(self.box, pts)
 
         def residual(i, o, og):
             w, gw = win[i], gwin[i]
-            so = _sigmoid(o)
-            g0 = k * so
-            g1 = g0 * (1 - so)
+            g0, g1, g2 = self._output(o)
             ob = 2.0 / len(i) * (1.0 + w * g0 - eta[i]) * w * g1
             omb = np.zeros(len(i))
             mu = np.zeros((len(i), 3))
@@ -676,7 +696,7 @@ class HashGridField(Field):
                 mu = 2.0 * scale**2 / len(i) * (ge - grad[i])
                 om = np.einsum("nd,nd->n", mu, og)
                 mw = np.einsum("nd,nd->n", mu, gw)
-                ob = ob + mw * g1 + w * g1 * (1 - 2 * so) * om
+                ob = ob + mw * g1 + w * g2 * om
                 omb = w * g1
             return ob, omb, mu
 
@@ -701,9 +721,13 @@ class HashGridField(Field):
         direction is the normal, and flat beyond it, at T = logit((eta - 1) / (eta_max - 1))
         inside (eta there is the index) and SURFACE_FAR outside (eta 1 to 1e-6). A smooth
         ramp is far easier for the grid than eta's own sharp step: on the quick protocol's
-        sphere the normals come out 0.3 deg off at the median instead of 1.4 (README)."""
+        sphere the normals come out 0.3 deg off at the median instead of 1.4 (README).
+        With the ramp output, o is fitted to -2 phi / width instead (`_fit_ramp`)."""
         pts = np.asarray(pts, np.float64).reshape(-1, 3)
         phi = np.asarray(phi, np.float64).reshape(-1)
+        if self.config.output == "ramp":
+            self._fit_ramp(pts, phi, grad_phi, eta, width, iterations, batch, seed)
+            return
         # the interior's output: eta there is the index (as saturated as the far side if the
         # index is at eta_max; unused when there is no interior)
         lim = 1.0 / (1.0 + math.exp(SURFACE_FAR))
@@ -729,6 +753,32 @@ class HashGridField(Field):
 
         self._distil(pts, residual, iterations, batch, seed, SURFACE_LR)
 
+    def _fit_ramp(self, pts, phi, grad_phi, eta, width, iterations, batch, seed) -> None:
+        """fit_surface for the ramp output: o = -2 phi / width, so that eta follows the
+        level set's ramp S(1/2 - phi / width) exactly, up to o_in inside (eta there is the
+        index) and down to RAMP_FLOOR outside; past those only the side counts."""
+        # at eta_max inside (the index there), o is held above the ramp's top as it is held
+        # below its foot outside: eta is then exactly flat, where a lower index leaves
+        # the interior on the ramp's shoulder, whose noise bends every ray crossing it
+        frac = (eta - 1.0) / (self.config.eta_max - 1.0)
+        o_in = 2.0 * _smoother_inverse(frac) - 1.0 if frac < 1.0 - 1e-9 else -RAMP_FLOOR
+        lin = -2.0 * phi / width
+        target = np.clip(lin, RAMP_FLOOR, o_in)
+        low, high = lin <= RAMP_FLOOR, lin >= o_in
+        ramp = ~(low | high)
+        grad_target = (-2.0 / width) * grad_phi
+
+        def residual(i, o, og):
+            n = len(i)
+            r = o - target[i]
+            past = (low[i] & (r < 0)) | (high[i] & (r > 0))
+            r = np.where(past, 0.0, r)
+            mu = (2.0 * RAMP_GRAD_WEIGHT * width**2 / n) * (og - grad_target[i])
+            mu[~ramp[i]] = 0.0
+            return 2.0 / n * r, np.ones(n), mu
+
+        self._distil(pts, residual, iterations, batch, seed, RAMP_LR)
+
     def regularizer(self, params: np.ndarray) -> tuple[float, np.ndarray]:
         """Mean over fixed points where the window is 1 of (cell * d eta / dx_a)^2 over the axes,
         cell = the finest level's cell (a discrete squared gradient in the voxel grid's
@@ -737,11 +787,7 @@ class HashGridField(Field):
         p = np.asarray(params, np.float64)
         pts = self._regularizer_points()
         o, og, _, tape = self._forward2(pts, None, p, hessian=False)
-        k = self.config.eta_max - 1.0
-        so = _sigmoid(o)
-        g0 = k * so
-        g1 = g0 * (1 - so)
-        g2 = g1 * (1 - 2 * so)
+        g0, g1, g2 = self._output(o)
         win, gw, _ = _window_hessian(self.box, pts)
         ge = g0[:, None] * gw + (win * g1)[:, None] * og
         scale = (float(self.box.size.min()) / self.config.resolutions[-1]) ** 2 / 3 / len(pts)
