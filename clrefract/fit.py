@@ -160,8 +160,8 @@ class FitConfig:
         if self.step > 0:
             return self.step
         # a quarter of the interface: at half, the truth fitted into a hash grid renders
-        # 5 dB worse (a 48 x 48 sphere, width 1 mm: 24.5 against 29.3 dB). A hash grid's
-        # surface ramps over a quarter of the width (fit_surface): an eighth
+        # 5 dB worse (a 48 x 48 sphere, width 1 mm: 24.5 against 29.3 dB). A sigmoid hash
+        # grid's surface ramps over a quarter of the width (fit_surface): an eighth
         if self.field == "hashgrid":
             return self.width / 4 if self.hashgrid_output == "ramp" else self.width / 8
         if self.field == "levelset":
