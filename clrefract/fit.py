@@ -384,6 +384,11 @@ def fit_to_field(
     rng = np.random.default_rng([seed, 3])
     lo, size = np.asarray(field.box.lo), field.box.size
     solid = surface and hasattr(source, "sdf")
+    if not solid and field.config.output == "ramp":
+        raise ClrefractError(
+            "a hash grid with the ramp output is fitted to a solid's signed distance, and "
+            f"this {type(source).__name__} has none: use output = 'sigmoid'"
+        )
     sample = source.sdf if solid else source.eval  # (phi, grad phi) or (eta, grad eta)
     pts = lo + rng.uniform(size=(200_000, 3)) * size
     value, grad = sample(pts)
@@ -395,11 +400,6 @@ def fit_to_field(
         value_more, grad_more = sample(more)
         pts = np.concatenate([pts, more])
         value, grad = np.concatenate([value, value_more]), np.concatenate([grad, grad_more])
-    if not solid and field.config.output == "ramp":
-        raise ClrefractError(
-            "a hash grid with the ramp output is fitted to a solid's signed distance, and "
-            f"this {type(source).__name__} has none: use output = 'sigmoid'"
-        )
     if solid:
         field.fit_surface(pts, value, grad, source.eta, width, iterations, seed=seed)
         return field.eta_rms(pts, source.eval(pts)[0])

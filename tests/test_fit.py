@@ -266,3 +266,15 @@ def test_hash_grid_output_follows_the_start_and_sets_step_and_eta_max():
         load_config(None, dict(field="hashgrid", init="empty", output="ramp")).validate()
     with pytest.raises(ClrefractError, match="output must be"):
         load_config(None, dict(field="hashgrid", output="tanh")).validate()
+
+
+def test_a_ramp_hash_grid_is_not_fitted_to_a_field_without_a_surface():
+    from clrefract.fields import field_from_spec
+    from clrefract.fields.hashgrid import HashGridConfig, HashGridField
+    from clrefract.fit import fit_to_field
+
+    cfg = HashGridConfig(levels=2, log2_table=8, n_min=2, n_max=4, hidden=4, output="ramp")
+    lens = field_from_spec("luneburg")
+    assert not hasattr(lens, "sdf")
+    with pytest.raises(ClrefractError, match="has none: use output = 'sigmoid'"):
+        fit_to_field(HashGridField(cfg), lens, 1.0, 1)
