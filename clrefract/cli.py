@@ -285,6 +285,7 @@ def _cmd_fit(args) -> int:
             "lr_mlp",
             "lr_phi",
             "lr_index",
+            "optimizer",
             "adjoint_growth_max",
             "diverge_factor",
             "adjoint",
@@ -556,6 +557,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, help="learning rate of voxel values")
     p.add_argument("--lr-phi", type=float, help="learning rate of the level set's distance, mm")
     p.add_argument("--lr-index", type=float, help="learning rate of the level set's index")
+    p.add_argument(
+        "--optimizer",
+        choices=["adam", "line-search"],
+        help="adam (default), or line-search (level sets: the rays whose adjoint stays "
+        "tame, a smoothed shape gradient and the best of a few moves along it)",
+    )
     p.add_argument(
         "--growth-max",
         dest="adjoint_growth_max",

@@ -1,0 +1,76 @@
+"""The level set's line-search optimiser (clrefract/fit_linesearch.py)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from clrefract.errors import ClrefractError
+from clrefract.fit import load_config
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (dict(field="hashgrid"), "field 'hashgrid' uses optimizer 'adam'"),
+        (dict(field="voxel"), "field 'voxel' uses optimizer 'adam'"),
+        (dict(keep_growth=1.0), "keep_growth must be above 1"),
+        (dict(grad_sigma=-1.0), "grad_sigma must be >= 0"),
+        (dict(line_steps=()), "line_steps must be positive"),
+        (dict(line_steps=("a",)), "line_steps must be positive"),
+        (dict(line_steps=(0.01, -0.1)), "line_steps must be positive"),
+        (dict(env_blur=2.0), "compares sharp pixels"),
+        (dict(block=8), "compares sharp pixels"),
+        (dict(optimizer="sgd"), "optimizer must be 'adam' or 'line-search'"),
+    ],
+)
+def test_line_search_config_is_refused_where_it_cannot_work(overrides, message):
+    base = dict(field="levelset", optimizer="line-search")
+    with pytest.raises(ClrefractError, match=message):
+        load_config(None, {**base, **overrides})
+
+
+def test_smoothing_keeps_the_gradients_sum_and_spreads_a_spike():
+    from clrefract.fit_linesearch import smoothed
+
+    g = np.zeros((32, 32, 32))
+    g[16, 16, 16] = 1.0
+    s = smoothed(g.ravel(), g.shape, 2.0).reshape(g.shape)
+    assert s.sum() == pytest.approx(1.0, rel=1e-9)  # away from the edges
+    # the peak (2 pi sigma^2)^-1.5 = 0.00794; two sigmas away exp(-2) of it
+    assert s[16, 16, 16] == pytest.approx(0.00794, rel=0.02)
+    assert s[16, 16, 20] == pytest.approx(np.exp(-2) * s[16, 16, 16], rel=0.02)
+    assert np.array_equal(smoothed(g.ravel(), g.shape, 0.0), g.ravel())
+
+
+def test_line_search_improves_the_held_out_views_from_the_hull_start(tmp_path):
+    """The claim the fit exists for, at the size of a test: a glass sphere at 48 x 48
+    pixels, the level set from its visual-hull start, six line-search steps. The held-out
+    views' loss falls under 0.9 of the start's and the test views gain over 0.75 dB
+    (measured over four runs, which the backward pass's float atomics make differ: 0.55 to
+    0.83, and +1.16 to +3.01 dB from 33.54; Adam at its defaults: 0.99 and +0.16)."""
+    from clrefract.fit import prepare_fit
+    from clrefract.synth import MakeOptions, make_dataset
+
+    data = tmp_path / "sphere"
+    make_dataset("sphere", data, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
+    cfg = load_config(
+        None,
+        dict(
+            field="levelset",
+            res=32,
+            iterations=6,
+            optimizer="line-search",
+            validate_every=1,
+            val_views=4,
+        ),
+    )
+    fit = prepare_fit(data, tmp_path / "run", cfg)
+    start = fit.validation_loss()
+    result = fit.run()
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
+    assert len(rows) == 6 and all(0.5 < r["kept"] <= 1.0 for r in rows), rows
+    assert result["best_val_loss"] < 0.9 * start, (result["best_val_loss"], start)
+    assert result["test_psnr"] > result["start"]["test_psnr"] + 0.75, result
