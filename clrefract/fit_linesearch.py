@@ -2,12 +2,12 @@
 smoothed shape gradient, and the best of a few moves along it.
 
 On glass, a ray that grazes or reflects inside changes its exit by degrees when the surface
-moves by 10 nm: a tenth of the rays through a sphere make the loss of a batch rough at every
-step a search can try, and their gradients (truncated at `adjoint_growth_max`) are noise.
-Without them the loss follows its gradient (the change along it within 0.1% at 10 nm and
-80% of the first-order prediction at 1 um; tools/diag_tame_descent.py). The raw gradient's
-steepest directions then fit the batch's pixels with ripples a node wide, which the test
-views punish; a Gaussian of a few grid cells keeps the moves that are shapes.
+moves by 10 nm: a few such rays make the loss of a batch rough at every step a search can
+try, and their gradients (truncated at `adjoint_growth_max`) are noise. Without the rays
+whose adjoint grows past 10 the loss follows its gradient (on the quick sphere's start, the
+change along it within 0.1% of the prediction at 10 nm, 80% at 1 um; README, Fitting). The
+raw gradient's steepest directions then fit the batch's pixels with ripples a node wide,
+which the test views punish; a Gaussian of a few grid cells keeps the moves that are shapes.
 
 Each step: the loss and adjoint gradient of a batch of rays through the masks; the rays
 that exit with an adjoint growth of at most `keep_growth` are kept and their gradient taken
@@ -25,8 +25,6 @@ import numpy as np
 from .errors import ClrefractError
 from .metrics import psnr_linear_batch
 from .tracer import Status
-
-LINE_STEPS = (0.003, 0.01, 0.03, 0.1)  # mm, the largest node move of each trial
 
 
 def check_line_search(cfg) -> None:
@@ -54,7 +52,7 @@ def check_line_search(cfg) -> None:
 
 
 def smoothed(grad_phi: np.ndarray, shape: tuple, sigma: float) -> np.ndarray:
-    """The phi gradient smoothed by a Gaussian of sigma grid cells (edges reflected)."""
+    """The phi gradient smoothed by a Gaussian of sigma grid cells (edge values extended)."""
     if sigma <= 0:
         return grad_phi
     from scipy.ndimage import gaussian_filter
