@@ -61,56 +61,64 @@ def smoothed(grad_phi: np.ndarray, shape: tuple, sigma: float) -> np.ndarray:
 
 
 def line_search_step(fit) -> dict:
-    """One step of the level set in `fit` (a Fit); returns its metrics row."""
-    cfg = fit.cfg
+    """One step of the level set in `fit` (a Fit) on a fresh batch; its metrics row."""
     t0 = time.perf_counter()
     idx = fit._mask_batch(1000 + fit.it)
-    env = fit._env_full
-
-    def loss_and_grad(rays):
-        return fit.engine.loss_and_grad(
-            fit.origins[rays], fit.dirs[rays], fit.rgb[rays], env, fit.weights[rays]
-        )
-
-    first = loss_and_grad(idx)
+    first, ok = tame_rays(fit, idx)
     exited = first.status == Status.EXITED
-    ok = exited & (first.growth <= cfg.keep_growth)
-    kept = idx[ok]
     row = {
         "iteration": fit.it + 1,
         "loss": first.loss,
         "kept": float(ok.mean()),
         "step_mm": 0.0,
         "psnr": psnr_linear_batch(first.radiance[exited], fit.rgb[idx][exited]),
-        "rays_per_s": 0.0,
-        "seconds": 0.0,
     }
-    if len(kept):
-        grad = loss_and_grad(kept).grad
-        if not np.all(np.isfinite(grad)):
-            raise FloatingPointError("non-finite gradient")
-        move = np.zeros_like(grad)
-        move[:-1] = -smoothed(grad[:-1], fit.field.phi.shape, cfg.grad_sigma)
-        peak = np.abs(move).max()
-        if peak > 0:
-            move /= peak
-            start = fit.params.copy()
-            best = (fit._forward_loss(kept), 0.0)
-            row["loss_kept"] = best[0]
-            for s in cfg.line_steps:
-                _set(fit, start + s * move)
-                loss = fit._forward_loss(kept)
-                if loss < best[0]:
-                    best = (loss, float(s))
-            _set(fit, start + best[1] * move)
-            row["loss_kept_after"], row["step_mm"] = best
+    if ok.any():
+        row.update(search_along(fit, idx[ok]))
     fit.it += 1
     dt = time.perf_counter() - t0
     row.update(seconds=dt, rays_per_s=len(idx) / dt)
     return row
 
 
-def _set(fit, params: np.ndarray) -> None:
+def tame_rays(fit, rays: np.ndarray):
+    """The loss and gradient of training rays, and which of them exit with an adjoint
+    growth of at most keep_growth."""
+    first = _loss_and_grad(fit, rays)
+    return first, (first.status == Status.EXITED) & (first.growth <= fit.cfg.keep_growth)
+
+
+def search_along(fit, kept: np.ndarray) -> dict:
+    """Move phi along the kept rays' smoothed gradient by the best of line_steps (or not at
+    all); their loss before and after, and the move taken."""
+    cfg = fit.cfg
+    r = _loss_and_grad(fit, kept)
+    if not np.all(np.isfinite(r.grad)):
+        raise FloatingPointError("non-finite gradient")
+    move = np.zeros_like(r.grad)  # the index (last) is held
+    move[:-1] = -smoothed(r.grad[:-1], fit.field.phi.shape, cfg.grad_sigma)
+    peak = np.abs(move).max()
+    best = (r.loss, 0.0)
+    if peak > 0:
+        move /= peak
+        start = fit.params.copy()
+        for s in cfg.line_steps:
+            set_params(fit, start + s * move)
+            loss = fit._forward_loss(kept)
+            if loss < best[0]:
+                best = (loss, float(s))
+        set_params(fit, start + best[1] * move)
+    return {"loss_kept": r.loss, "loss_kept_after": best[0], "step_mm": best[1]}
+
+
+def set_params(fit, params: np.ndarray) -> None:
+    """New parameters for the fit's field, on the device."""
     fit.params[:] = params
     fit.field.set_data(fit.params)
     fit._upload(stepped=True)
+
+
+def _loss_and_grad(fit, rays: np.ndarray):
+    return fit.engine.loss_and_grad(
+        fit.origins[rays], fit.dirs[rays], fit.rgb[rays], fit._env_full, fit.weights[rays]
+    )

@@ -9,11 +9,12 @@ shape gradient smoothed on the grid.
 RUN is a level-set run folder (`clrefract fit --field levelset`, or a `bench_reconstruction.py`
 run); its field.npz is the start and its config the tracer's. Each iteration takes the loss
 and adjoint gradient of RAYS rays through the masks of the training views (held-out views
-excluded), keeps those that exit with an adjoint growth of at most GROWTH (0: all), takes
-their gradient again, smooths its phi part by a Gaussian of SIGMA grid cells (0: none;
-the index is held), and moves phi along it by the best of STEPS (the largest node move, mm)
-on the kept rays' loss, or not at all. It prints the loss of all the rays and of the kept
-ones, the test views' PSNR and SSIM, the chamfer distance and the held-out loss.
+excluded), keeps those that exit with an adjoint growth of at most GROWTH (0: every
+exiting one), and takes one step of `--optimizer line-search` on them
+(clrefract/fit_linesearch.py: the gradient smoothed by SIGMA grid cells, 0: none; phi moved
+by the best of STEPS, the largest node move in mm, or not at all). It prints the loss of all
+the rays and of the kept ones, the test views' PSNR and SSIM, the chamfer distance and the
+held-out loss.
 
 Why: rays that graze or reflect inside glass change their exit by degrees for a 10 nm move
 of the surface, so the loss of all rays is rough at every step a line search can try, while
@@ -26,6 +27,7 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import math
 import time
 from pathlib import Path
 
@@ -33,47 +35,36 @@ import numpy as np
 
 
 def main() -> None:
-    from scipy.ndimage import gaussian_filter
-
     from clrefract.fit import Fit, load_config
+    from clrefract.fit_linesearch import search_along, set_params, tame_rays
     from clrefract.report import score_field
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path)
     ap.add_argument("--rays", type=int, default=60000)
     ap.add_argument("--iterations", type=int, default=8)
-    ap.add_argument("--growth", type=float, default=10.0, help="0: keep every ray")
+    ap.add_argument("--growth", type=float, default=10.0, help="0: keep every exiting ray")
     ap.add_argument("--sigma", type=float, default=3.0, help="grid cells; 0: raw gradient")
     ap.add_argument("--steps", default="0.003,0.01,0.03,0.1", help="largest node moves, mm")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--save", type=Path, help="write the final level set here (.npz)")
     ap.add_argument("--json", default="bench_results/diag_tame_descent.json")
     args = ap.parse_args()
-    steps = [float(s) for s in args.steps.split(",") if s]
 
     cfg = load_config(args.run / "config.toml", {})
     if cfg.field != "levelset":
         raise SystemExit(f"{args.run}: a level-set run is needed, this one fits {cfg.field}")
+    cfg.keep_growth = args.growth if args.growth > 0 else math.inf
+    cfg.grad_sigma = args.sigma
+    cfg.line_steps = tuple(float(s) for s in args.steps.split(",") if s)
     dataset = Path(json.loads((args.run / "run.json").read_text())["dataset"])
     fit = Fit(dataset, args.run, cfg, stream=io.StringIO())
     fit.load_checkpoint()  # binds a level set on the run's box
     with np.load(args.run / "field.npz") as z:
-        params = np.concatenate([z["phi"].ravel(), [float(z["eta"])]])
-    shape = fit.field.phi.shape
+        set_params(fit, np.concatenate([z["phi"].ravel(), [float(z["eta"])]]))
     rng = np.random.default_rng(args.seed)
     marked = fit._marked_pool()
     rays = rng.choice(marked, min(args.rays, len(marked)), replace=False)
-    env = fit._env_full
-
-    def set_params(p: np.ndarray) -> None:
-        fit.params[:] = p
-        fit.field.set_data(fit.params)
-        fit._upload()
-
-    def loss_and_grad(idx: np.ndarray):
-        return fit.engine.loss_and_grad(
-            fit.origins[idx], fit.dirs[idx], fit.rgb[idx], env, fit.weights[idx]
-        )
 
     def scores() -> dict:
         s = score_field(fit)
@@ -84,10 +75,9 @@ def main() -> None:
             "val_loss": fit.validation_loss(),
         }
 
-    set_params(params)
     rows = [{"iteration": 0, **scores()}]
-    cols = ("iteration", "loss_all", "kept", "loss_kept", "after", "step_mm", "test_psnr",
-            "test_ssim", "chamfer_mm", "val_loss", "seconds")  # fmt: skip
+    cols = ("iteration", "loss_all", "kept", "loss_kept", "loss_kept_after", "step_mm",
+            "test_psnr", "test_ssim", "chamfer_mm", "val_loss", "seconds")  # fmt: skip
     print("  ".join(f"{c:>10}" for c in cols))
 
     def show(row: dict) -> None:
@@ -100,35 +90,11 @@ def main() -> None:
     show(rows[0])
     for it in range(1, args.iterations + 1):
         t0 = time.perf_counter()
-        r = loss_and_grad(rays)
-        ok = r.status == 0
-        if args.growth > 0:
-            ok &= r.growth <= args.growth
-        kept = rays[ok]
-        g = loss_and_grad(kept).grad.copy()
-        g[-1] = 0.0  # the index is held
-        if args.sigma > 0:
-            g[:-1] = gaussian_filter(g[:-1].reshape(shape), args.sigma).ravel()
-        direction = -g / max(np.abs(g).max(), 1e-30)
-        before = fit._forward_loss(kept)
-        best = (before, 0.0)
-        for s in steps:
-            set_params(params + s * direction)
-            loss = fit._forward_loss(kept)
-            if loss < best[0]:
-                best = (loss, s)
-        params = params + best[1] * direction
-        set_params(params)
-        row = {
-            "iteration": it,
-            "loss_all": float(r.loss),
-            "kept": int(ok.sum()),
-            "loss_kept": before,
-            "after": best[0],
-            "step_mm": best[1],
-            **scores(),
-            "seconds": time.perf_counter() - t0,
-        }
+        first, ok = tame_rays(fit, rays)
+        row = {"iteration": it, "loss_all": float(first.loss), "kept": int(ok.sum())}
+        if ok.any():
+            row.update(search_along(fit, rays[ok]))
+        row.update(scores(), seconds=time.perf_counter() - t0)
         rows.append(row)
         show(row)
     if args.save:
