@@ -93,11 +93,14 @@ class FitConfig:
     # most keep_growth, smooths the phi gradient by grad_sigma cells and takes the best of
     # line_steps mm along it; clrefract/fit_linesearch.py): from the quick sphere's start
     # at 0.5 mm, 8 steps of 60,000 rays took the test views from 31.98 to 33.59 dB
-    # (tools/diag_tame_descent.py)
+    # (tools/diag_tame_descent.py). A hash grid from the hull moves the level set it was
+    # distilled from that way, and is fitted to it again after each move (refit_iterations)
     optimizer: str = "adam"
     keep_growth: float = 10.0
     grad_sigma: float = 3.0
     line_steps: tuple = (0.003, 0.01, 0.03, 0.1)
+    refit_iterations: int = 300
+    line_batch: int = 0  # mask rays a line-search step takes (0: batch, as the start's search)
     reg: float = 1e-4  # weight of the smoothness regulariser
     sparsity: float = 0.0  # weight of an L1 pull of voxel values towards eta = 1 (empty space)
     # start: "hull" fills the visual hull of the refraction masks with the index that a
@@ -391,13 +394,20 @@ def hashgrid_config(cfg: FitConfig, eta_max: float = 1.6):
 
 
 def fit_to_field(
-    field, source, width: float, iterations: int, seed: int = 0, surface: bool = True
+    field,
+    source,
+    width: float,
+    iterations: int,
+    seed: int = 0,
+    surface: bool = True,
+    rate: float = 1.0,
 ) -> float:
     """Fit a hash grid to another field at points of its box: uniform ones, and as many
     again around the interfaces, jittered by half the interface `width`. A solid with a
     signed distance (`source.sdf`: a level set, a scene's truth) is fitted as its surface
     (`fit_surface`) unless `surface` is False, any other field by its eta and gradient.
-    Returns the RMS error of eta against the source."""
+    Returns the RMS error of eta against the source; `rate` scales the distillation's
+    Adam rates (a refit from where the field is wants less than a start)."""
     rng = np.random.default_rng([seed, 3])
     lo, size = np.asarray(field.box.lo), field.box.size
     solid = surface and hasattr(source, "sdf")
@@ -418,7 +428,7 @@ def fit_to_field(
         pts = np.concatenate([pts, more])
         value, grad = np.concatenate([value, value_more]), np.concatenate([grad, grad_more])
     if solid:
-        field.fit_surface(pts, value, grad, source.eta, width, iterations, seed=seed)
+        field.fit_surface(pts, value, grad, source.eta, width, iterations, seed=seed, rate=rate)
         return field.eta_rms(pts, source.eval(pts)[0])
     return field.fit_values(pts, value, grad, scale=width, iterations=iterations, seed=seed)
 
@@ -463,6 +473,7 @@ class Fit:
         self.best: tuple[float, int, np.ndarray | None] = (np.inf, 0, None)  # loss, it, params
         self.field = None
         self.engine = None
+        self.guide = None  # a hash grid's line search: the level set it follows
         self.adam = None
         self.params = None
         self.stopped: dict | None = None  # why a diverged run stopped (results.json)
@@ -498,12 +509,17 @@ class Fit:
         return make_field(self.cfg, self.box, self.eta_max, res)
 
     def _bind(self, field, step: float = 0.0) -> None:
+        self.field = field
+        self.params = np.array(field.data(), np.float64)
+        self.engine = self._engine_for(field, step)
+        self._update_free()
+        self._upload()
+
+    def _engine_for(self, field, step: float = 0.0):
         from .gradient import GradientEngine
         from .parallel import shard
 
-        self.field = field
-        self.params = np.array(field.data(), np.float64)
-        self.engine = GradientEngine(
+        engine = GradientEngine(
             field,
             self.box,
             step=step or self.cfg.step_mm,
@@ -518,9 +534,7 @@ class Fit:
             skip_empty=self.cfg.skip_empty,
             occupancy_res=self.cfg.occupancy_res,
         )
-        self.engine = shard(self.engine, self.cfg.chunks)  # split over MPI ranks, if any
-        self._update_free()
-        self._upload()
+        return shard(engine, self.cfg.chunks)  # split over MPI ranks, if any
 
     def _upload(self, stepped: bool = False) -> None:
         """Send the parameters to the device; with skip_empty, rebuild the occupancy: always
@@ -561,6 +575,10 @@ class Fit:
         guide_cfg = replace(self.cfg, field="levelset", step=self.cfg.width / 4)
         self._bind(make_field(guide_cfg, self.box, self.eta_max, res), step=guide_cfg.step)
         self._fill_hull()
+        if self.cfg.optimizer == "line-search":
+            from .fit_linesearch import Guide
+
+            self.guide = Guide(self.field, self.engine, self.params, self.eta_max)
         if not self.cfg.eta_max:
             self.eta_max = self.cfg.hashgrid_eta_max(self.init_info["eta"])
         rms = self.start_from(self.field)
@@ -838,6 +856,7 @@ class Fit:
                 best_iteration=best_it,
                 best_params=self.params if best_params is None else best_params,
                 **self.adam.state(),
+                **(self.guide.state() if self.guide is not None else {}),
             )
 
     def load_checkpoint(self) -> None:
@@ -847,6 +866,7 @@ class Fit:
                 params, it, shape = z["params"], int(z["iteration"]), z["shape"]
                 state = {k: z[k] for k in ("adam_m", "adam_v", "adam_t")}
                 best = (float(z["best_loss"]), int(z["best_iteration"]), z["best_params"])
+                guide = {k: z[k] for k in z.files if k.startswith("guide_")}
         except FileNotFoundError:
             raise ClrefractError(f"{path}: no checkpoint to resume from") from None
         except Exception as exc:  # noqa: BLE001 - any damage is the user's to know about
@@ -867,6 +887,10 @@ class Fit:
         self.adam.load_state(state)
         self.it = it
         self.best = best if np.isfinite(best[0]) else (np.inf, 0, None)
+        if self.cfg.field == "hashgrid" and self.cfg.optimizer == "line-search":
+            from .fit_linesearch import Guide
+
+            self.guide = Guide.restore(self, guide, path)
 
     # --- the loop ----------------------------------------------------------------------------
     def _marked_rays(self) -> np.ndarray:
@@ -889,14 +913,15 @@ class Fit:
             )
         return self._marked_in_pool
 
-    def _mask_batch(self, tag: int) -> np.ndarray:
-        """A fixed batch of the training rays that the masks (grown by 2 pixels) mark: only
-        they can see the object, so they carry the whole signal of a start search."""
+    def _mask_batch(self, tag: int, size: int = 0) -> np.ndarray:
+        """A fixed batch (of `size`, 0: the configured batch) of the training rays that the
+        masks (grown by 2 pixels) mark: only they can see the object, so they carry the
+        whole signal of a start search."""
         marked = self._marked_pool()
         if len(marked) < 16:
             return self._fixed_batch(tag)
         rng = np.random.default_rng([self.cfg.seed, tag])
-        return rng.choice(marked, size=min(self.cfg.batch, len(marked)), replace=False)
+        return rng.choice(marked, size=min(size or self.cfg.batch, len(marked)), replace=False)
 
     def _fixed_batch(self, tag: int) -> np.ndarray:
         """A batch of training rays that depends only on (seed, tag)."""

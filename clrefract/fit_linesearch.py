@@ -14,11 +14,17 @@ that exit with an adjoint growth of at most `keep_growth` are kept and their gra
 again; its phi part is smoothed by `grad_sigma` cells (the index is held: the start searched
 it); phi moves by the move in `line_steps` (the largest node move, mm) that lowers the kept
 rays' loss most, or stays.
+
+A hash grid from the hull takes these steps on the level set it was distilled from (its
+`Guide`), and is fitted to it again after each move that was taken (`refit_iterations`):
+the grid's own parameters have no cells to smooth a gradient over.
 """
 
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -26,14 +32,26 @@ from .errors import ClrefractError
 from .metrics import psnr_linear_batch
 from .tracer import Status
 
+# a refit starts where the grid is: its Adam rates a tenth of a fresh distillation's
+REFIT_RATE = 0.1
+
 
 def check_line_search(cfg) -> None:
     """What the line search needs of a fit's config (FitConfig.validate)."""
-    if cfg.field != "levelset":
+    if cfg.field == "voxel":
         raise ClrefractError(
-            f"optimizer 'line-search' moves a level set's surface; field {cfg.field!r} "
-            "uses optimizer 'adam'"
+            "optimizer 'line-search' moves a surface (a level set's, or the one a hash grid "
+            "is distilled from); field 'voxel' uses optimizer 'adam'"
         )
+    if cfg.field == "hashgrid" and cfg.init != "hull":
+        raise ClrefractError(
+            "optimizer 'line-search' moves a hash grid's surface from the visual hull: "
+            "set init = 'hull'"
+        )
+    if cfg.line_batch < 0:
+        raise ClrefractError(f"line_batch must be >= 0 (0: batch), got {cfg.line_batch}")
+    if cfg.refit_iterations < 1:
+        raise ClrefractError(f"refit_iterations must be at least 1, got {cfg.refit_iterations}")
     if not (cfg.keep_growth > 1 and np.isfinite(cfg.keep_growth)):
         raise ClrefractError(f"keep_growth must be above 1, got {cfg.keep_growth}")
     if not (cfg.grad_sigma >= 0 and np.isfinite(cfg.grad_sigma)):
@@ -60,10 +78,93 @@ def smoothed(grad_phi: np.ndarray, shape: tuple, sigma: float) -> np.ndarray:
     return gaussian_filter(grad_phi.reshape(shape), sigma, mode="nearest").ravel()
 
 
+@dataclass
+class Guide:
+    """The level set a hash grid's line search moves (the start it was distilled from),
+    with its own engine and parameters."""
+
+    field: object
+    engine: object
+    params: np.ndarray
+    eta_max: float
+
+    def state(self) -> dict:
+        """What a checkpoint keeps of it."""
+        return {
+            "guide_params": self.params,
+            "guide_res": self.field.phi.shape[0],
+            "guide_eta_max": self.eta_max,
+        }
+
+    @classmethod
+    def restore(cls, fit, state: dict, path) -> Guide:
+        """The guide of a resumed fit, from its checkpoint's `state()`."""
+        from .fit import make_field
+
+        if "guide_params" not in state:
+            raise ClrefractError(
+                f"{path}: the checkpoint holds no level set for the hash grid's line search "
+                "(a run begun with optimizer 'adam'?)"
+            )
+        cfg = replace(fit.cfg, field="levelset", step=fit.cfg.width / 4)
+        eta_max = float(state["guide_eta_max"])
+        field = make_field(cfg, fit.box, eta_max, int(state["guide_res"]))
+        params = np.array(state["guide_params"], np.float64)
+        if len(params) != len(field.data()):
+            raise ClrefractError(f"{path}: the line search's level set does not fit its grid")
+        field.set_data(params)
+        engine = fit._engine_for(field, cfg.step)
+        engine.tracer.upload_field()
+        return cls(field, engine, params, eta_max)
+
+
+@contextmanager
+def _on_guide(fit):
+    """`fit` with its guide's field, engine and parameters in place of its own."""
+    own = fit.field, fit.engine, fit.params
+    fit.field, fit.engine, fit.params = fit.guide.field, fit.guide.engine, fit.guide.params
+    try:
+        yield
+    finally:
+        fit.field, fit.engine, fit.params = own
+
+
 def line_search_step(fit) -> dict:
-    """One step of the level set in `fit` (a Fit) on a fresh batch; its metrics row."""
+    """One step of the level set in `fit` (a Fit), or of its guide, on a fresh batch; its
+    metrics row."""
     t0 = time.perf_counter()
-    idx = fit._mask_batch(1000 + fit.it)
+    if fit.guide is None:
+        row = _level_set_step(fit)
+    else:
+        with _on_guide(fit):
+            row = _level_set_step(fit)
+        if row["step_mm"] > 0:
+            row["distilled_rms"] = refit(fit)
+    fit.it += 1
+    dt = time.perf_counter() - t0
+    row.update(seconds=dt, rays_per_s=row.pop("rays") / dt)
+    return row
+
+
+def refit(fit) -> float:
+    """Fit the hash grid to its guide again, from where it is; the RMS error of eta."""
+    from .fit import fit_to_field
+
+    rms = fit_to_field(
+        fit.field,
+        fit.guide.field,
+        fit.cfg.width,
+        fit.cfg.refit_iterations,
+        fit.cfg.seed + fit.it + 1,
+        rate=REFIT_RATE,
+    )
+    fit.params[:] = fit.field.data()
+    fit._upload(stepped=True)
+    return rms
+
+
+def _level_set_step(fit) -> dict:
+    idx = fit._mask_batch(1000 + fit.it, fit.cfg.line_batch)
     first, ok = tame_rays(fit, idx)
     exited = first.status == Status.EXITED
     row = {
@@ -75,9 +176,7 @@ def line_search_step(fit) -> dict:
     }
     if ok.any():
         row.update(search_along(fit, idx[ok]))
-    fit.it += 1
-    dt = time.perf_counter() - t0
-    row.update(seconds=dt, rays_per_s=len(idx) / dt)
+    row["rays"] = len(idx)
     return row
 
 

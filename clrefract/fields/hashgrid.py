@@ -713,6 +713,7 @@ class HashGridField(Field):
         iterations: int = 1000,
         batch: int = 8192,
         seed: int = 0,
+        rate: float = 1.0,
     ) -> None:
         """Fit the field to a solid of index `eta` bounded by the zero set of a signed
         distance phi (mm, negative inside; its gradient grad_phi) with an interface of
@@ -722,11 +723,13 @@ class HashGridField(Field):
         inside (eta there is the index) and SURFACE_FAR outside (eta 1 to 1e-6). A smooth
         ramp is far easier for the grid than eta's own sharp step: on the quick protocol's
         sphere the normals come out 0.3 deg off at the median instead of 1.4 (README).
-        With the ramp output, o is fitted to -2 phi / width instead (`_fit_ramp`)."""
+        With the ramp output, o is fitted to -2 phi / width instead (`_fit_ramp`). `rate`
+        scales the Adam rates."""
         pts = np.asarray(pts, np.float64).reshape(-1, 3)
         phi = np.asarray(phi, np.float64).reshape(-1)
         if self.config.output == "ramp":
-            self._fit_ramp(pts, phi, grad_phi, eta, width, iterations, batch, seed)
+            lr = (RAMP_LR[0] * rate, RAMP_LR[1] * rate)
+            self._fit_ramp(pts, phi, grad_phi, eta, width, iterations, batch, seed, lr)
             return
         # the interior's output: eta there is the index (as saturated as the far side if the
         # index is at eta_max; unused when there is no interior)
@@ -751,9 +754,11 @@ class HashGridField(Field):
             mu = 2.0 * SURFACE_GRAD_WEIGHT * width**2 / n * (og - grad_target[i])
             return 2.0 / n * r, np.ones(n), mu
 
-        self._distil(pts, residual, iterations, batch, seed, SURFACE_LR)
+        self._distil(
+            pts, residual, iterations, batch, seed, (SURFACE_LR[0] * rate, SURFACE_LR[1] * rate)
+        )
 
-    def _fit_ramp(self, pts, phi, grad_phi, eta, width, iterations, batch, seed) -> None:
+    def _fit_ramp(self, pts, phi, grad_phi, eta, width, iterations, batch, seed, lr) -> None:
         """fit_surface for the ramp output: o = -2 phi / width, so that eta follows the
         level set's ramp S(1/2 - phi / width) exactly, up to o_in inside (eta there is the
         index) and down to RAMP_FLOOR outside; past those only the side counts."""
@@ -777,7 +782,7 @@ class HashGridField(Field):
             mu[~ramp[i]] = 0.0
             return 2.0 / n * r, np.ones(n), mu
 
-        self._distil(pts, residual, iterations, batch, seed, RAMP_LR)
+        self._distil(pts, residual, iterations, batch, seed, lr)
 
     def regularizer(self, params: np.ndarray) -> tuple[float, np.ndarray]:
         """Mean over fixed points where the window is 1 of (cell * d eta / dx_a)^2 over the axes,
