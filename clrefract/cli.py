@@ -560,8 +560,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--optimizer",
         choices=["adam", "line-search"],
-        help="adam (default), or line-search (level sets: the rays whose adjoint stays "
-        "tame, a smoothed shape gradient and the best of a few moves along it)",
+        help="adam (default), or line-search (level sets, and hash grids from the hull "
+        "through their level set: the rays whose adjoint stays tame, a smoothed shape "
+        "gradient and the best of a few moves along it)",
     )
     p.add_argument(
         "--growth-max",

@@ -158,8 +158,7 @@ def refit(fit) -> float:
         fit.cfg.seed + fit.it + 1,
         rate=REFIT_RATE,
     )
-    fit.params[:] = fit.field.data()
-    fit._upload(stepped=True)
+    set_params(fit, fit.field.data())
     return rms
 
 

@@ -47,6 +47,22 @@ def test_smoothing_keeps_the_gradients_sum_and_spreads_a_spike():
     assert np.array_equal(smoothed(g.ravel(), g.shape, 0.0), g.ravel())
 
 
+def _sphere_run(tmp_path, **overrides):
+    """A fit on a 48 x 48 glass sphere of 25 views, validated every step on 4 held-out
+    views: its results, the start's held-out loss, its metrics rows, and the Fit."""
+    from clrefract.fit import prepare_fit
+    from clrefract.synth import MakeOptions, make_dataset
+
+    data = tmp_path / "sphere"
+    make_dataset("sphere", data, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
+    cfg = load_config(None, dict(validate_every=1, val_views=4, **overrides))
+    fit = prepare_fit(data, tmp_path / "run", cfg)
+    start = fit.validation_loss()
+    result = fit.run()
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
+    return result, start, rows, fit
+
+
 def test_line_search_lowers_the_held_out_loss_from_the_hull_start(tmp_path):
     """The held-out claim at the size of a test: a glass sphere at 48 x 48 pixels, the level
     set from its visual-hull start, six line-search steps lower the held-out views' loss
@@ -54,26 +70,9 @@ def test_line_search_lowers_the_held_out_loss_from_the_hull_start(tmp_path):
     make differ: 0.55 to 0.83; Adam at its defaults 0.99). The test views are not asserted:
     they gained 1.16 to 3.01 dB from 33.54 there, but on pip's PoCL, whose start differs
     (37.82 dB), they lost 0.93 while the held-out loss passed."""
-    from clrefract.fit import prepare_fit
-    from clrefract.synth import MakeOptions, make_dataset
-
-    data = tmp_path / "sphere"
-    make_dataset("sphere", data, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
-    cfg = load_config(
-        None,
-        dict(
-            field="levelset",
-            res=32,
-            iterations=6,
-            optimizer="line-search",
-            validate_every=1,
-            val_views=4,
-        ),
+    result, start, rows, _ = _sphere_run(
+        tmp_path, field="levelset", res=32, iterations=6, optimizer="line-search"
     )
-    fit = prepare_fit(data, tmp_path / "run", cfg)
-    start = fit.validation_loss()
-    result = fit.run()
-    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
     assert len(rows) == 6 and all(0.5 < r["kept"] <= 1.0 for r in rows), rows
     assert result["best_val_loss"] < 0.9 * start, (result["best_val_loss"], start)
 
@@ -84,32 +83,24 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path):
     on a 48 x 48 sphere, four steps take its held-out loss under 0.9 of the start's (with
     the distillation and hull defaults and six steps, Debian's PoCL: 0.52 of it, the test
     views 33.50 -> 35.04 dB). A resumed run takes up the same level set from its checkpoint."""
-    from clrefract.fit import prepare_fit
-    from clrefract.synth import MakeOptions, make_dataset
-
-    data = tmp_path / "sphere"
-    make_dataset("sphere", data, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
     overrides = dict(
         field="hashgrid",
         res=32,
         iterations=4,
         optimizer="line-search",
-        validate_every=1,
-        val_views=4,
         distil_iterations=1000,
         refit_iterations=150,
         tighten_hull=False,  # a sphere's visual hull is round already
         test_views=2,
     )
-    fit = prepare_fit(data, tmp_path / "run", load_config(None, overrides))
-    start = fit.validation_loss()
-    result = fit.run()
-    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
+    result, start, rows, fit = _sphere_run(tmp_path, **overrides)
     moved = [r for r in rows if r["step_mm"] > 0]
     assert len(moved) >= 2 and all(r["distilled_rms"] < 0.01 for r in moved), rows
     assert result["best_val_loss"] < 0.9 * start, (result["best_val_loss"], start)
 
-    again = prepare_fit(data, tmp_path / "run", load_config(None, overrides), resume=True)
+    from clrefract.fit import prepare_fit
+
+    again = prepare_fit(tmp_path / "sphere", fit.out, load_config(None, overrides), resume=True)
     assert again.it == 4
     assert np.array_equal(again.guide.params, fit.guide.params)
     idx = fit._mask_batch(5)
