@@ -551,7 +551,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--levels", type=int, help="hash grid levels")
     p.add_argument("--log2-table", type=int, help="hash table size, log2")
     p.add_argument("--hidden", type=int, help="MLP width")
-    p.add_argument("--iterations", type=int)
+    p.add_argument(
+        "--iterations", type=int, help="steps of the optimiser (Adam 600, line search 16)"
+    )
     p.add_argument("--batch", type=int, help="rays per iteration")
     p.add_argument("--width", type=float, help="level-set interface width, mm")
     p.add_argument("--lr", type=float, help="learning rate of voxel values")

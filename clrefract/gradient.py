@@ -262,9 +262,12 @@ class GradientEngine:
         env: EnvMap,
         weights: np.ndarray | None = None,
         group: int = 1,
+        terminal=None,
     ) -> GradientResult:
         """weights: (n,) loss weight of each ray's pixel (0: a clipped photograph pixel);
-        group: rays compared by the mean of each consecutive run of this many."""
+        group: rays compared by the mean of each consecutive run of this many;
+        terminal: another loss of the exit state, (status, velocity) -> (loss, dJ/dv,
+        radiance), in place of the photometric one (targets, env, weights, group unused)."""
         tr = self.tracer
         pending = self.forward(origins, dirs)
         n = len(origins)
@@ -277,7 +280,10 @@ class GradientEngine:
             status[idx] = st[:m]
             steps += int(sp[:m].sum())
         exited = status == Status.EXITED
-        loss, mu, rad = traced_loss(env, status, vel, targets, weights, self.loss_space, group)
+        if terminal is None:
+            loss, mu, rad = traced_loss(env, status, vel, targets, weights, self.loss_space, group)
+        else:
+            loss, mu, rad = terminal(status, vel)
 
         n_par = len(self.field.data())
         jobs = []

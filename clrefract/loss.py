@@ -108,6 +108,22 @@ def photometric_loss(
         loss = float((resid**2).sum() / n)
         dres = 2 * resid / n
     dj_dd = np.einsum("nc,nck->nk", dres, jac)
-    # remove the radial part: dJ/dv = (I - d d^T) / |v| dJ/dd
-    dj_dv = (dj_dd - (dj_dd * d).sum(1, keepdims=True) * d) / speed[:, None]
-    return loss, dj_dv, rad
+    return loss, velocity_adjoint(dj_dd, d, speed), rad
+
+
+def velocity_adjoint(dj_dd: np.ndarray, d: np.ndarray, speed: np.ndarray) -> np.ndarray:
+    """dJ/dv from dJ/dd for d = v / |v|: the radial part removed, (I - d d^T) / |v| dJ/dd."""
+    return (dj_dd - (dj_dd * d).sum(1, keepdims=True) * d) / speed[:, None]
+
+
+def direction_loss(velocity: np.ndarray, target: np.ndarray, weight: np.ndarray):
+    """Mean squared distance of exit directions from target unit directions over the rays
+    of weight 1 (a diagnostic: the truth's directions stand in for what a photograph can
+    only hint at); (loss, dJ/dv, zero radiance)."""
+    v = np.asarray(velocity, np.float64)
+    speed = np.maximum(np.linalg.norm(v, axis=1), 1e-30)
+    d = v / speed[:, None]
+    wgt = np.asarray(weight, np.float64)
+    diff = (d - np.nan_to_num(target)) * wgt[:, None]
+    n = max(int((wgt > 0).sum()), 1)
+    return float((diff**2).sum() / n), velocity_adjoint(2 * diff / n, d, speed), np.zeros_like(v)

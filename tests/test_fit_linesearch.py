@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from clrefract.errors import ClrefractError
-from clrefract.fit import load_config
+from clrefract.fit import LINE_SEARCH_ITERATIONS, load_config
 
 
 @pytest.mark.parametrize(
@@ -32,6 +32,18 @@ def test_line_search_config_is_refused_where_it_cannot_work(overrides, message):
     base = dict(field="levelset", optimizer="line-search")
     with pytest.raises(ClrefractError, match=message):
         load_config(None, {**base, **overrides})
+
+
+def test_a_line_search_takes_its_own_number_of_steps_unless_told(tmp_path):
+    line = dict(field="levelset", optimizer="line-search")
+    assert load_config(None, line).iterations == LINE_SEARCH_ITERATIONS < 100
+    assert load_config(None, {**line, "iterations": 3}).iterations == 3
+    toml = tmp_path / "fit.toml"
+    toml.write_text('field = "levelset"\noptimizer = "line-search"\niterations = 5\n')
+    assert load_config(toml, {}).iterations == 5
+    toml.write_text('field = "levelset"\noptimizer = "line-search"\n')
+    assert load_config(toml, {}).iterations == LINE_SEARCH_ITERATIONS
+    assert load_config(None, {}).iterations == 600  # Adam's
 
 
 def test_smoothing_keeps_the_gradients_sum_and_spreads_a_spike():

@@ -11,13 +11,23 @@ out. It prints:
   from the true surface) and the refraction masks against the true silhouettes;
 - the loss, per pixel and by 8 x 8 blocks, along the straight line in the level set's values
   from the hull (t = 0) to the truth sampled on the same grid (t = 1);
-- at t = 0, 0.9 and 1: the gradient's cosine with the way to the truth, and the cosine
-  between the gradients of two disjoint halves of the rays (near 1: the rays agree on where
-  the surface should go; near 0: each half fits its own pixels).
+- at t = 0, 0.5, 0.9 and 0.99: the gradient's cosine with the way to the truth, and the
+  cosine between the gradients of two disjoint halves of the rays (near 1: the rays agree on
+  where the surface should go; near 0: each half fits its own pixels), raw and smoothed by
+  a Gaussian of grad_sigma cells (as the line search takes it);
+--direction-targets adds the same for a loss no photograph gives: the squared distance of
+each ray's exit direction from the truth's (traced on the same grid), the most any
+per-ray loss of the exit state could say about where the surface lies.
 --self-targets compares with the truth on the grid as the eikonal tracer renders it, not
 with the photographs: no model error, the loss is 0 at t = 1.
 --descend N then runs N Adam steps of the fit (index fixed, 90% of each batch through the
 masks) from t = 0.9 and prints the loss and the level set's mean error near the surface.
+--line-search N runs N steps of the line-search optimiser's rule (tame rays, gradient
+smoothed by grad_sigma cells, the best of 0.01 to 1 mm) on the --rays pool, driven by the
+photometric loss and, with --direction-targets, by the exit directions' distance from the
+truth's; from the hull (t = 0), or with --start RUN from the level set of a line-search run
+on this scene (its level set's, or a hash grid's guide), at the true index. It prints the
+pool's photometric loss and the level set's mean error near the surface at each step.
 """
 
 from __future__ import annotations
@@ -28,6 +38,10 @@ import json
 from pathlib import Path
 
 import numpy as np
+
+from clrefract.fit_linesearch import smoothed
+from clrefract.loss import direction_loss
+from clrefract.tracer import Status
 
 
 def main() -> None:
@@ -44,6 +58,9 @@ def main() -> None:
     ap.add_argument("--lr-phi", type=float, default=0.002)
     ap.add_argument("--precision", default="float32")
     ap.add_argument("--adjoint", default="continuous")
+    ap.add_argument("--direction-targets", action="store_true")
+    ap.add_argument("--line-search", type=int, default=0)
+    ap.add_argument("--start", help="a line-search run folder on this scene")
     args = ap.parse_args()
     root = quick_dataset(args.scene, args.data)
     cfg = load_config(
@@ -115,23 +132,42 @@ def main() -> None:
         )
 
     near = np.abs(phi_true) < 3 * cfg.width
+    aims = None
+    if args.direction_targets:
+        at(1.0)
+        aims = exit_directions(fit, pixels)
     out["gradient"] = []
     half = len(pixels) // 2
-    for t in (0.0, 0.9, 0.99):
+    losses = {"photometric": None}
+    if aims is not None:
+        losses["directions"] = aims
+    for t in (0.0, 0.5, 0.9, 0.99):
         at(t)
-        g1, g2 = (gradient(fit, part) for part in (pixels[:half], pixels[half:]))
-        row = {
-            "t": t,
-            "cos_with_way": -cosine(g1 + g2, way, near),
-            "cos_between_halves": cosine(g1, g2, near),
-        }
-        out["gradient"].append(row)
-        print(
-            f"t {t:5.3f}: cos(-g, way to truth) {row['cos_with_way']:+.4f}  "
-            f"cos(g half 1, g half 2) {row['cos_between_halves']:+.4f}"
-        )
+        for name, aim in losses.items():
+            g1, g2 = (gradient(fit, part, aims=aim) for part in (pixels[:half], pixels[half:]))
+            s1, s2 = (smoothed(g, fit.field.phi.shape, cfg.grad_sigma) for g in (g1, g2))
+            row = {
+                "t": t,
+                "loss": name,
+                "cos_with_way": -cosine(g1 + g2, way, near),
+                "cos_between_halves": cosine(g1, g2, near),
+                "smoothed_cos_with_way": -cosine(s1 + s2, way, near),
+                "smoothed_cos_between_halves": cosine(s1, s2, near),
+            }
+            out["gradient"].append(row)
+            print(
+                f"t {t:5.3f} {name:>11}: cos(-g, way to truth) {row['cos_with_way']:+.4f}  "
+                f"cos(g half 1, g half 2) {row['cos_between_halves']:+.4f}; smoothed "
+                f"{row['smoothed_cos_with_way']:+.4f}, {row['smoothed_cos_between_halves']:+.4f}"
+            )
     if args.descend:
         out["descent"] = descend(fit, args.descend, lambda: at(0.9), phi_true, near)
+    if args.line_search:
+        start = run_level_set(Path(args.start), phi_hull.shape) if args.start else phi_hull
+        out["line_search"] = {
+            name: line_search(fit, start, args.line_search, pixels, phi_true, near, aim, name)
+            for name, aim in losses.items()
+        }
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(out, indent=2))
 
@@ -149,6 +185,66 @@ def descend(fit, steps: int, reset, phi_true, near) -> list:
             err = float(np.abs(fit.params[:-1] - phi_true)[near].mean())
             rows.append({"iteration": it, "loss": m["loss"], "phi_error_mm": err})
             print(f"descent {it:4d}: batch loss {m['loss']:.5f}, mean |phi - truth| {err:.4f} mm")
+    return rows
+
+
+def run_level_set(run: Path, shape) -> np.ndarray:
+    """The level set (phi) a line-search run's checkpoint holds: its own, or its guide's."""
+    ckpt = np.load(run / "checkpoint.npz")
+    phi = (ckpt["guide_params"] if "guide_params" in ckpt.files else ckpt["params"])[:-1]
+    if phi.shape != shape:
+        raise SystemExit(f"{run}: its level set has {phi.size} values, not 64^3")
+    return phi.astype(np.float64)
+
+
+def line_search(fit, start, steps: int, pool, phi_true, near, aims, name: str) -> list:
+    """The line-search rule on the pool's rays from phi = start, driven by the photometric
+    loss (aims None) or by the distance of exit directions from aims; a row per step."""
+    from clrefract.fit_linesearch import smoothed
+
+    set_params(fit, start)
+    args = (fit.origins[pool], fit.dirs[pool], fit.rgb[pool], fit._env_full)
+    if aims is not None:
+        aim = np.array([aims.get(int(k), (np.nan,) * 3) for k in pool])
+        has = np.isfinite(aim[:, 0])
+    rows = []
+    for it in range(steps + 1):
+        err = float(np.abs(fit.params[:-1] - phi_true)[near].mean())
+        row = {"step": it, "photometric": loss(fit, pool, 1), "phi_error_mm": err}
+        rows.append(row)
+        print(
+            f"line search ({name}) {it:3d}: photometric {row['photometric']:.5f}, "
+            f"mean |phi - truth| {err:.4f} mm"
+        )
+        if it == steps:
+            break
+        if aims is None:
+            first = fit.engine.loss_and_grad(*args, fit.weights[pool])
+            tame = (first.status == Status.EXITED) & (first.growth <= fit.cfg.keep_growth)
+            weight = fit.weights[pool] * tame
+            r = fit.engine.loss_and_grad(*args, weight)
+
+            def driven(weight=weight):
+                return loss(fit, pool, 1, weight)
+        else:
+            first = fit.engine.loss_and_grad(*args, terminal=toward(aim, has))
+            term = toward(aim, has & (first.growth <= fit.cfg.keep_growth))
+            r = fit.engine.loss_and_grad(*args, terminal=term)
+
+            def driven(term=term):
+                tr = fit.engine.tracer.trace(fit.origins[pool], fit.dirs[pool])
+                return term(tr.status, tr.direction)[0]
+
+        move = -smoothed(r.grad[:-1], fit.field.phi.shape, fit.cfg.grad_sigma)
+        move /= max(np.abs(move).max(), 1e-30)
+        base, best = fit.params[:-1].copy(), (r.loss, 0.0)
+        for s in (0.01, 0.03, 0.1, 0.3, 1.0):
+            set_params(fit, base + s * move)
+            trial = driven()
+            if trial < best[0]:
+                best = (trial, s)
+        set_params(fit, base + best[1] * move)
+        row.update(driving_loss=r.loss, after=best[0], step_mm=best[1])
     return rows
 
 
@@ -213,27 +309,53 @@ def mask_errors(fit, truth, views: int = 20) -> dict:
     }
 
 
-def loss(fit, idx, group: int) -> float:
+def loss(fit, idx, group: int, weights=None) -> float:
     from clrefract.gradient import traced_loss
 
     r = fit.engine.tracer.trace(fit.origins[idx], fit.dirs[idx])
+    weights = fit.weights[idx] if weights is None else weights
     return float(
-        traced_loss(
-            fit._env_full, r.status, r.direction, fit.rgb[idx], fit.weights[idx], group=group
-        )[0]
+        traced_loss(fit._env_full, r.status, r.direction, fit.rgb[idx], weights, group=group)[0]
     )
 
 
-def gradient(fit, idx, growth_max: float = 30.0) -> np.ndarray:
+def gradient(fit, idx, growth_max: float = 30.0, aims: dict | None = None) -> np.ndarray:
     """Mean gradient over idx of the level set's values, rays whose adjoint grew past
-    growth_max left out (their paths are chaotic)."""
+    growth_max left out (their paths are chaotic); of the photometric loss, or with aims
+    (ray -> unit direction) of the exit directions' distance from them."""
     total = np.zeros(len(fit.params))
     for s in range(0, len(idx), 8192):
         j = idx[s : s + 8192]
         args = (fit.origins[j], fit.dirs[j], fit.rgb[j], fit._env_full)
-        kept = fit.engine.loss_and_grad(*args, fit.weights[j]).growth <= growth_max
-        total += fit.engine.loss_and_grad(*args, fit.weights[j] * kept).grad * len(j)
+        if aims is None:
+            kept = fit.engine.loss_and_grad(*args, fit.weights[j]).growth <= growth_max
+            r = fit.engine.loss_and_grad(*args, fit.weights[j] * kept)
+        else:
+            aim = np.array([aims.get(int(k), (np.nan,) * 3) for k in j])
+            has = np.isfinite(aim[:, 0])
+            first = fit.engine.loss_and_grad(*args, terminal=toward(aim, has))
+            r = fit.engine.loss_and_grad(
+                *args, terminal=toward(aim, has & (first.growth <= growth_max))
+            )
+        total += r.grad * len(j)
     return total[:-1] / len(idx)
+
+
+def toward(aim: np.ndarray, counted: np.ndarray):
+    """The terminal loss of exit directions against aim, over counted rays that exit."""
+
+    def terminal(status, velocity):
+        return direction_loss(velocity, aim, (status == Status.EXITED) & counted)
+
+    return terminal
+
+
+def exit_directions(fit, idx) -> dict:
+    """Ray -> unit exit direction of the rays idx that exit the current field."""
+    r = fit.engine.tracer.trace(fit.origins[idx], fit.dirs[idx])
+    ok = r.status == Status.EXITED
+    d = r.direction / np.linalg.norm(r.direction, axis=1, keepdims=True)
+    return {int(k): d[i] for i, k in enumerate(idx) if ok[i]}
 
 
 def cosine(a: np.ndarray, b: np.ndarray, where: np.ndarray) -> float:
