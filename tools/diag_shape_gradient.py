@@ -23,7 +23,7 @@ with the photographs: no model error, the loss is 0 at t = 1.
 --descend N then runs N Adam steps of the fit (index fixed, 90% of each batch through the
 masks) from t = 0.9 and prints the loss and the level set's mean error near the surface.
 --line-search N runs N steps of the line-search optimiser's rule (tame rays, gradient
-smoothed by grad_sigma cells, the best of 0.01 to 1 mm) on the --rays pool, driven by the
+smoothed by grad_sigma cells, the best of 0.001 to 1 mm) on the --rays pool, driven by the
 photometric loss and, with --direction-targets, by the exit directions' distance from the
 truth's; from the hull (t = 0), or with --start RUN from the level set of a line-search run
 on this scene (its level set's, or a hash grid's guide), at the true index. It prints the
@@ -238,7 +238,7 @@ def line_search(fit, start, steps: int, pool, phi_true, near, aims, name: str) -
         move = -smoothed(r.grad[:-1], fit.field.phi.shape, fit.cfg.grad_sigma)
         move /= max(np.abs(move).max(), 1e-30)
         base, best = fit.params[:-1].copy(), (r.loss, 0.0)
-        for s in (0.01, 0.03, 0.1, 0.3, 1.0):
+        for s in (0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0):
             set_params(fit, base + s * move)
             trial = driven()
             if trial < best[0]:
