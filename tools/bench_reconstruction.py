@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+ADAM_ITERATIONS = 100  # the quick protocol's Adam steps
+
 
 def dataset(scene: str, res: int, root: Path) -> Path:
     from clrefract.synth import MakeOptions, make_dataset
@@ -64,6 +66,8 @@ def bench_scene(scene: str, args) -> dict:
             lr=args.lr,
         ),
     )
+    if args.iterations is None and cfg.optimizer == "adam":
+        cfg.iterations = ADAM_ITERATIONS
     row: dict = {"scene": scene, "field": args.field, "res": args.res, "grid": args.grid}
     run = Path(args.runs) / scene
     shutil.rmtree(run, ignore_errors=True)
@@ -116,7 +120,9 @@ def main() -> None:
     ap.add_argument("--grid", type=int, default=64, help="grid resolution (voxel or level set)")
     ap.add_argument("--field", default="levelset", choices=["levelset", "voxel", "hashgrid"])
     ap.add_argument("--width", type=float, default=1.0, help="level-set interface width, mm")
-    ap.add_argument("--iterations", type=int, default=100)
+    ap.add_argument(
+        "--iterations", type=int, help="default: 100 for Adam, the fit's own for a line search"
+    )
     ap.add_argument("--batch", type=int, default=8192)
     ap.add_argument("--step", type=float, default=0.0, help="mm; 0: the fit's default")
     ap.add_argument("--lr", type=float, default=None, help="default: the fit's")
