@@ -3,6 +3,7 @@
     python tools/diag_shape_gradient.py [--scene rounded-cube] [--data bench_results/data]
         [--rays 16384] [--self-targets] [--json bench_results/diag_shape_gradient.json]
         [--descend 40 --lr-phi 0.002 --precision float64 --adjoint discrete]
+        [--direction-targets] [--line-search 12 --start bench_results/runs_hgls/prism]
 
 On a family solid (quick protocol: 128 x 128, 100 views; made in DATA if missing), a 64^3
 level set with the true index, rays through the masks, rays whose adjoint grew past 30 left
@@ -200,8 +201,6 @@ def run_level_set(run: Path, shape) -> np.ndarray:
 def line_search(fit, start, steps: int, pool, phi_true, near, aims, name: str) -> list:
     """The line-search rule on the pool's rays from phi = start, driven by the photometric
     loss (aims None) or by the distance of exit directions from aims; a row per step."""
-    from clrefract.fit_linesearch import smoothed
-
     set_params(fit, start)
     args = (fit.origins[pool], fit.dirs[pool], fit.rgb[pool], fit._env_full)
     if aims is not None:
