@@ -204,7 +204,7 @@ def line_search(fit, start, steps: int, pool, phi_true, near, aims, name: str) -
     set_params(fit, start)
     args = (fit.origins[pool], fit.dirs[pool], fit.rgb[pool], fit._env_full)
     if aims is not None:
-        aim = np.array([aims.get(int(k), (np.nan,) * 3) for k in pool])
+        aim = aimed(aims, pool)
         has = np.isfinite(aim[:, 0])
     rows = []
     for it in range(steps + 1):
@@ -330,7 +330,7 @@ def gradient(fit, idx, growth_max: float = 30.0, aims: dict | None = None) -> np
             kept = fit.engine.loss_and_grad(*args, fit.weights[j]).growth <= growth_max
             r = fit.engine.loss_and_grad(*args, fit.weights[j] * kept)
         else:
-            aim = np.array([aims.get(int(k), (np.nan,) * 3) for k in j])
+            aim = aimed(aims, j)
             has = np.isfinite(aim[:, 0])
             first = fit.engine.loss_and_grad(*args, terminal=toward(aim, has))
             r = fit.engine.loss_and_grad(
@@ -347,6 +347,11 @@ def toward(aim: np.ndarray, counted: np.ndarray):
         return direction_loss(velocity, aim, (status == Status.EXITED) & counted)
 
     return terminal
+
+
+def aimed(aims: dict, idx) -> np.ndarray:
+    """(len(idx), 3) target directions of rays idx; NaN where the truth's ray did not exit."""
+    return np.array([aims.get(int(k), (np.nan,) * 3) for k in idx])
 
 
 def exit_directions(fit, idx) -> dict:
