@@ -108,7 +108,10 @@ class FitConfig:
     init: str = "hull"
     mask_threshold: float = 0.05  # sRGB difference from the straight view that marks a pixel
     free_cells: int = 2  # cells around the hull where eta may change (-1: everywhere)
-    hull_tolerance: float = 0.2  # fraction of the views whose mask may have a hole
+    hull_tolerance: float = 0.03  # fraction of the views a hull point may lie outside
+    # a view whose mask carves more than this share of the other views' hull has holes, and
+    # is left out of the hull (0: keep every view; clrefract/hull.py, carving_views)
+    hull_carve: float = 0.02
     # level sets also try the hull tightened by silhouette-held curvature flow (flat faces
     # the views roof over come out flat; clrefract/hull_tighten.py), kept if its loss is lower
     tighten_hull: bool = True
@@ -627,7 +630,12 @@ class Fit:
 
         box = self.ds.box
         hull = visual_hull(
-            box, self.ds.train, self._refraction_masks(), 48, tolerance=self.cfg.hull_tolerance
+            box,
+            self.ds.train,
+            self._refraction_masks(),
+            48,
+            tolerance=self.cfg.hull_tolerance,
+            carve=self.cfg.hull_carve,
         )
         if not hull.found:
             raise ClrefractError(
@@ -649,7 +657,12 @@ class Fit:
         self._refraction_masks()
         if res not in self._hulls:
             hull = visual_hull(
-                self.box, self.ds.train, self._masks, res, tolerance=self.cfg.hull_tolerance
+                self.box,
+                self.ds.train,
+                self._masks,
+                res,
+                tolerance=self.cfg.hull_tolerance,
+                carve=self.cfg.hull_carve,
             )
             self._hulls = {res: hull}
         return self._hulls[res]
@@ -668,6 +681,7 @@ class Fit:
         also picks how much to smooth the hull: a visual hull from finitely many views is
         faceted (flat between the view cones), and a sharp surface shows every facet."""
         hull = self._hull(self.field.values.shape[0])
+        rejected = [self.ds.train[v].name for v in hull.rejected]
         levelset = self._levelset_bound()
         if not hull.found:
             self.stream.write("start: no refraction mask agrees across views; eta = 1\n")
@@ -706,7 +720,13 @@ class Fit:
             "hull": kind,
             "loss": float(loss),
             "loss_empty": float(empty),
+            "views_left_out": rejected,
         }
+        if rejected:
+            self.stream.write(
+                f"start: {len(rejected)} of {len(self.ds.train)} views left out of the hull "
+                "(their masks cut into what the others agree on)\n"
+            )
         self.stream.write(
             f"start: {kind} hull {100 * self.init_info['hull_fraction']:.2f}% of the box, "
             f"offset {offset:+.2f} mm, smoothed {sigma:.1f} mm, filled with eta {eta:.3f} "

@@ -60,11 +60,13 @@ def test_visual_hull_of_a_flat_faced_solid_has_its_depth(cube_hull):
 
 def test_tightened_hull_flattens_the_roofs_and_keeps_every_mask_ray(cube, cube_hull):
     """The visual hull roofs a cube's faces between its views; curvature flow held by the mask
-    rays brings it onto them. Measured: IoU with the truth 0.81 -> 0.885 (flow time 110 mm^2)
-    and 0.886 (330); 99.7% and 97.4% of the rays the hull meets still meet it."""
+    rays brings it onto them. On the hull of all views but a fifth (the roofs highest),
+    measured: IoU with the truth 0.81 -> 0.885 (flow time 110 mm^2) and 0.886 (330); 99.7%
+    and 97.4% of the rays the hull meets still meet it."""
     from clrefract.hull_tighten import _mask_rays, _RayDepths, tighten
 
-    truth, masks, box, hull, pts = cube_hull
+    truth, masks, box, _, pts = cube_hull
+    hull = visual_hull(box, cube.train, masks, 40, tolerance=0.2, carve=0)
     inside = (truth.sdf(pts)[0] < 0).reshape(hull.distance.shape)
 
     def iou(h):
