@@ -124,12 +124,13 @@ def _cone_distances(cameras: list[Camera], dists: list[np.ndarray], p: np.ndarra
     return sd
 
 
-def _kth(sd: np.ndarray, tolerance: float) -> np.ndarray:
+def _kth(sd: np.ndarray, tolerance: float, nearest: bool = False) -> np.ndarray:
     """Per point, the smallest cone distance but for a `tolerance` fraction of the views
-    that see it, and at least one view where two or more see it; -inf where none does."""
+    that see it, rounded down (or to the nearest count: one view of 17 to 50 instead of
+    none, and still none of 4); -inf where no view sees it."""
     seen = np.isfinite(sd).sum(axis=0)
-    k = np.floor(tolerance * seen).astype(np.int64)
-    k = np.minimum(np.maximum(k, 1), np.maximum(seen - 1, 0))
+    k = (np.rint if nearest else np.floor)(tolerance * seen).astype(np.int64)
+    k = np.minimum(k, np.maximum(seen - 1, 0))
     val = np.take_along_axis(np.sort(sd, axis=0), k[None], axis=0)[0]
     return np.where(seen > 0, val, -np.inf)
 
@@ -144,11 +145,13 @@ def hull_distance(
 ):
     """Signed distance (mm, positive inside) of points to the visual hull: the distance to
     each view's silhouette cone, then the smallest over the views but for a `tolerance`
-    fraction of them, whose masks may have small holes. Points no view sees get -inf."""
+    fraction of them (to the nearest count), whose masks may have small holes. Points no
+    view sees get -inf."""
     dists = [mask_distance(m) for m in masks]
     out = np.empty(len(pts))
     for a in range(0, len(pts), chunk):
-        out[a : a + chunk] = _kth(_cone_distances(cameras, dists, pts[a : a + chunk]), tolerance)
+        sd = _cone_distances(cameras, dists, pts[a : a + chunk])
+        out[a : a + chunk] = _kth(sd, tolerance, nearest=True)
     return out
 
 

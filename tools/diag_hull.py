@@ -9,7 +9,7 @@ same nodes, under two rules:
 - "a fifth": a point is in the hull if it lies inside the silhouette cones of all views but
   a fifth of them (the rule before views were left out);
 - "left out" (the fit's default): views whose masks carve the others' hull are left out
-  (`carving_views`), and a point may lie outside 3% of the rest (at least one).
+  (`carving_views`), and a point may lie outside 3% of the rest (to the nearest count).
 It prints the IoU, the nodes deeper than 1 mm inside the truth that the hull misses, the
 hull's surface distance outside the truth's at the 10th / 50th / 90th percentile (mm, from
 nodes within 0.6 mm of the true surface), and the views left out.
