@@ -626,17 +626,9 @@ class Fit:
         window brings eta to 1) and a band of the interface width beyond the hull. Rays fly
         straight to it, and its grid spends every node near the object."""
         from .fields.base import Box
-        from .hull import visual_hull
 
         box = self.ds.box
-        hull = visual_hull(
-            box,
-            self.ds.train,
-            self._refraction_masks(),
-            48,
-            tolerance=self.cfg.hull_tolerance,
-            carve=self.cfg.hull_carve,
-        )
+        hull = self._visual_hull(box, 48)
         if not hull.found:
             raise ClrefractError(
                 f"{self.ds.root}: the refraction masks do not agree on an object (a faint "
@@ -652,20 +644,22 @@ class Fit:
         return Box(tuple(lo.tolist()), tuple(hi.tolist()), box.margin)
 
     def _hull(self, res: int):
+        if res not in self._hulls:
+            self._hulls = {res: self._visual_hull(self.box, res)}
+        return self._hulls[res]
+
+    def _visual_hull(self, box, res: int):
+        """The training views' visual hull on res^3 nodes over box, by the fit's hull rule."""
         from .hull import visual_hull
 
-        self._refraction_masks()
-        if res not in self._hulls:
-            hull = visual_hull(
-                self.box,
-                self.ds.train,
-                self._masks,
-                res,
-                tolerance=self.cfg.hull_tolerance,
-                carve=self.cfg.hull_carve,
-            )
-            self._hulls = {res: hull}
-        return self._hulls[res]
+        return visual_hull(
+            box,
+            self.ds.train,
+            self._refraction_masks(),
+            res,
+            tolerance=self.cfg.hull_tolerance,
+            carve=self.cfg.hull_carve,
+        )
 
     def _update_free(self) -> None:
         """Nodes whose eta may change: near the hull (everywhere without one)."""

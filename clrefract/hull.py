@@ -142,12 +142,13 @@ def hull_distance(
     pts: np.ndarray,
     tolerance: float = TOLERANCE,
     chunk: int = 65536,
+    dists: list[np.ndarray] | None = None,
 ):
     """Signed distance (mm, positive inside) of points to the visual hull: the distance to
     each view's silhouette cone, then the smallest over the views but for a `tolerance`
     fraction of them (to the nearest count), whose masks may have small holes. Points no
-    view sees get -inf."""
-    dists = [mask_distance(m) for m in masks]
+    view sees get -inf. `dists`: the masks' distance transforms, if already made."""
+    dists = dists or [mask_distance(m) for m in masks]
     out = np.empty(len(pts))
     for a in range(0, len(pts), chunk):
         sd = _cone_distances(cameras, dists, pts[a : a + chunk])
@@ -162,6 +163,7 @@ def carving_views(
     depth: float,
     carve: float = CARVE_MAX,
     chunk: int = 65536,
+    dists: list[np.ndarray] | None = None,
 ) -> list[int]:
     """Views whose masks have holes. A ray through two parallel faces leaves parallel to how
     it came, shifted, and looks like air: a prism seen near its axis leaves a notch in its
@@ -170,7 +172,7 @@ def carving_views(
     inside the hull of all views but a fifth); a view with a sound mask carves none of it.
     On the quick protocol (80 views, 64^3 nodes over the object's box) this finds 8 of the
     prism's views and 4 of the vase's, and none of the other scenes' (tools/diag_hull.py)."""
-    dists = [mask_distance(m) for m in masks]
+    dists = dists or [mask_distance(m) for m in masks]
     carved = np.zeros(len(cameras))
     core = 0
     for a in range(0, len(pts), chunk):
@@ -198,9 +200,17 @@ def visual_hull(
     axes = [np.linspace(lo[a], hi[a], res) for a in range(3)]
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     cell = float(np.max((hi - lo) / (res - 1)))
-    rejected = carving_views(cameras, masks, pts, cell, carve) if carve > 0 else []
+    dists = [mask_distance(m) for m in masks]
+    rejected = carving_views(cameras, masks, pts, cell, carve, dists=dists) if carve > 0 else []
     keep = sorted(set(range(len(cameras))) - set(rejected))
-    sd = hull_distance(box, [cameras[v] for v in keep], [masks[v] for v in keep], pts, tolerance)
+    sd = hull_distance(
+        box,
+        [cameras[v] for v in keep],
+        [masks[v] for v in keep],
+        pts,
+        tolerance,
+        dists=[dists[v] for v in keep],
+    )
     # the box margin is air by construction
     m = box.margin
     wall = np.min(np.minimum(pts - lo, hi - pts), axis=1) - 2 * m
