@@ -217,6 +217,24 @@ class FitConfig:
             )
         if not (0 <= self.index_headroom < 10):
             raise ClrefractError(f"index_headroom must be in [0, 10), got {self.index_headroom}")
+        if not 0 <= self.hull_tolerance < 0.5:
+            raise ClrefractError(
+                "hull_tolerance must be in [0, 0.5) (a share of the views), "
+                f"got {self.hull_tolerance}"
+            )
+        if not 0 <= self.hull_carve <= 1:
+            raise ClrefractError(
+                f"hull_carve must be in [0, 1] (a share of the hull; 0 keeps every view), "
+                f"got {self.hull_carve}"
+            )
+        if not 0 < self.mask_threshold < 1:
+            raise ClrefractError(
+                f"mask_threshold must be in (0, 1) (an sRGB difference), got {self.mask_threshold}"
+            )
+        if self.free_cells < -1:
+            raise ClrefractError(
+                f"free_cells must be at least 0 (or -1: everywhere), got {self.free_cells}"
+            )
         if self.output not in ("", "ramp", "sigmoid"):
             raise ClrefractError(f"output must be 'ramp' or 'sigmoid', got {self.output!r}")
         if self.field == "hashgrid" and self.output == "ramp" and self.init != "hull":

@@ -268,6 +268,30 @@ def test_hash_grid_output_follows_the_start_and_sets_step_and_eta_max():
         load_config(None, dict(field="hashgrid", output="tanh")).validate()
 
 
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("hull_tolerance", 0.5, "hull_tolerance must be in"),
+        ("hull_tolerance", -0.1, "hull_tolerance must be in"),
+        ("hull_carve", 1.5, "hull_carve must be in"),
+        ("hull_carve", float("nan"), "hull_carve must be in"),
+        ("mask_threshold", 0.0, "mask_threshold must be in"),
+        ("free_cells", -2, "free_cells must be at least 0"),
+    ],
+)
+def test_hull_settings_out_of_range_are_refused(tmp_path, key, value, message):
+    """The hull's shares, the mask threshold and the free band: a value outside its range
+    names the key, from a config file as from overrides."""
+    with pytest.raises(ClrefractError, match=message):
+        load_config(None, {key: value}).validate()
+    if value == value:  # TOML has no NaN literal worth writing here
+        path = tmp_path / "c.toml"
+        path.write_text(f"{key} = {value!r}\n")
+        with pytest.raises(ClrefractError, match=message):
+            load_config(path, {}).validate()
+    assert load_config(None, {}).validate() is None  # the defaults pass
+
+
 def test_a_ramp_hash_grid_is_not_fitted_to_a_field_without_a_surface():
     from clrefract.fields import field_from_spec
     from clrefract.fields.hashgrid import HashGridConfig, HashGridField
