@@ -111,15 +111,20 @@ def project(cam: Camera, pts: np.ndarray):
 def _cone_distances(cameras: list[Camera], dists: list[np.ndarray], p: np.ndarray):
     """(views, n): signed distance (mm, + inside) of points to each view's silhouette cone,
     read bilinearly from the mask's distance transform at the point's depth; inf where a
-    view does not see the point."""
+    point is behind the view. Beyond the frame the mask's edge goes on: air where the edge is
+    air (the object is in the frame), unknown (inside) where the mask runs off the frame."""
     sd = np.full((len(cameras), len(p)), np.inf)
     for v, (cam, dist) in enumerate(zip(cameras, dists)):
         row, col, depth = project(cam, p)
-        ok = (depth > 0) & (row >= 0) & (row <= cam.height) & (col >= 0) & (col <= cam.width)
+        ok = depth > 0
         if not ok.any():
             continue
         # pixel centres sit at +0.5; map_coordinates samples centres at integers
-        px = ndimage.map_coordinates(dist, [row[ok] - 0.5, col[ok] - 0.5], order=1, mode="nearest")
+        r = np.clip(row[ok] - 0.5, 0.0, cam.height - 1.0)
+        c = np.clip(col[ok] - 0.5, 0.0, cam.width - 1.0)
+        px = ndimage.map_coordinates(dist, [r, c], order=1, mode="nearest")
+        beyond = np.hypot(row[ok] - 0.5 - r, col[ok] - 0.5 - c)
+        px = np.where(px < 0, px - beyond, px)
         sd[v, ok] = px * depth[ok] / cam.fl_x
     return sd
 
@@ -127,7 +132,7 @@ def _cone_distances(cameras: list[Camera], dists: list[np.ndarray], p: np.ndarra
 def _kth(sd: np.ndarray, tolerance: float, nearest: bool = False) -> np.ndarray:
     """Per point, the smallest cone distance but for a `tolerance` fraction of the views
     that see it, rounded down (or to the nearest count: one view of 17 to 50 instead of
-    none, and still none of 4); -inf where no view sees it."""
+    none, and still none of 4); -inf where no view sees it (all behind it)."""
     seen = np.isfinite(sd).sum(axis=0)
     k = (np.rint if nearest else np.floor)(tolerance * seen).astype(np.int64)
     k = np.minimum(k, np.maximum(seen - 1, 0))
@@ -146,8 +151,8 @@ def hull_distance(
 ):
     """Signed distance (mm, positive inside) of points to the visual hull: the distance to
     each view's silhouette cone, then the smallest over the views but for a `tolerance`
-    fraction of them (to the nearest count), whose masks may have small holes. Points no
-    view sees get -inf. `dists`: the masks' distance transforms, if already made."""
+    fraction of them (to the nearest count), whose masks may have small holes. Points
+    behind every view get -inf. `dists`: the masks' distance transforms, if already made."""
     dists = dists or [mask_distance(m) for m in masks]
     out = np.empty(len(pts))
     for a in range(0, len(pts), chunk):
@@ -211,10 +216,11 @@ def visual_hull(
         tolerance,
         dists=[dists[v] for v in keep],
     )
-    # the box margin is air by construction
+    # the box margin is air by construction; points no view sees (cameras close to a large
+    # box) are air too, at a finite distance: the flows and blurs of a hull take differences
     m = box.margin
     wall = np.min(np.minimum(pts - lo, hi - pts), axis=1) - 2 * m
-    sd = np.minimum(sd, wall)
+    sd = np.clip(sd, -float(np.linalg.norm(hi - lo)), wall)
     w = width or cell
     frac = float(np.mean([mk.mean() for mk in masks])) if masks else 0.0
     return Hull(sd.reshape(res, res, res), w, frac, tuple(rejected))

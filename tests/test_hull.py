@@ -74,6 +74,57 @@ def test_tightening_keeps_a_sphere(sphere_dataset):
         assert 0.88 < (tight.distance > 0).sum() / ball.sum() < 1.05
 
 
+def test_cameras_close_to_a_large_box_carve_beyond_their_frames(tmp_path):
+    """Cameras 110 mm from the centre of a 100 mm box see 59 mm across: nodes near its
+    corners lie outside most frames. A mask's edge goes on beyond the frame, so those nodes
+    are carved (were only the views that frame them to vote, one to three views would keep
+    phantom glass there), and the tightening flow keeps the ball."""
+    from clrefract.hull import project
+    from clrefract.hull_tighten import tighten
+
+    out = tmp_path / "close"
+    make_dataset(
+        "sphere", out, MakeOptions(views=15, res=32, radius=110.0, env_width=256, volume_res=16)
+    )
+    ds = Dataset(out)
+    env = ds.envmap()
+    masks = [refraction_mask(c, ds.image(c), env) for c in ds.train]
+    ax = np.linspace(-50, 50, 24)
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    framed = np.zeros(len(pts), int)
+    for cam in ds.train:
+        row, col, depth = project(cam, pts)
+        framed += (depth > 0) & (row >= 0) & (row <= cam.height) & (col >= 0) & (col <= cam.width)
+    assert (framed <= 3).sum() > 500  # measured 7,826 of 13,824 nodes
+    hull = visual_hull(ds.box, ds.train, masks, 24)
+    r = np.linalg.norm(pts, axis=1).reshape(hull.distance.shape)
+    ball = r < 20
+    for shape in [hull, *tighten(hull, ds.box, ds.train, masks)]:
+        assert np.isfinite(shape.distance).all()
+        inside = shape.distance > 0
+        assert inside[r < 14].all() and not inside[r > 28].any()
+        assert (inside & ball).sum() / (inside | ball).sum() > 0.6
+
+
+def test_a_mask_that_runs_off_its_frame_carves_nothing_beyond_that_edge():
+    """Beyond the frame a view knows only its edge: where the mask touches the edge the object
+    may go on (not carved), where the edge is air the distance outside keeps growing."""
+    from clrefract.cameras import Camera
+    from clrefract.hull import _cone_distances
+
+    c2w = np.eye(4)
+    c2w[2, 3] = 100.0  # at z = 100, looking down -z (OpenGL axes)
+    cam = Camera(c2w=c2w, width=20, height=20, fl_x=20.0, fl_y=20.0, cx=10.0, cy=10.0)
+    mask = np.zeros((20, 20), bool)
+    mask[5:15, :6] = True  # runs off the left edge
+    # the frame spans +-50 mm at z = 0
+    pts = np.array([[-60.0, 0.0, 0.0], [60.0, 0.0, 0.0], [80.0, 0.0, 0.0], [-60.0, 40.0, 0.0]])
+    sd = _cone_distances([cam], [mask_distance(mask)], pts)[0]
+    assert sd[0] > 0  # beyond the left edge, in line with the mask: unknown, kept
+    assert sd[1] < 0 and sd[2] == pytest.approx(sd[1] - 20)  # past the air edge: 4 px further
+    assert sd[3] < 0  # beyond the left edge but above the mask's rows: air
+
+
 def test_views_whose_masks_cut_the_object_are_left_out(sphere_dataset):
     """A mask with a hole (a prism seen near its axis looks like air there) carves the
     object from a hull that trusts every view. Two of the sphere's masks given a notch
