@@ -230,6 +230,8 @@ def _cmd_dataset_make(args) -> int:
         seed=args.seed,
         envmap=args.envmap,
         env_width=args.env_width,
+        radius=args.radius,
+        fov_y=args.fov,
         device=args.device,
     )
     if args.full:
@@ -504,6 +506,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--envmap", help="your own equirectangular EXR instead")
     p.add_argument("--env-width", type=int, default=2048, help="procedural map width")
+    p.add_argument(
+        "--radius",
+        type=float,
+        default=200.0,
+        help="distance of the cameras from the box centre, mm (outside the 100 mm box)",
+    )
+    p.add_argument("--fov", type=float, default=30.0, help="vertical field of view, degrees")
     p.add_argument("--device", default=None)
     p.set_defaults(func=_cmd_dataset_make)
     p = ds.add_parser(

@@ -136,6 +136,14 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) 
     if obj is None:
         obj = scene_object(name, eta=opt.eta, tilt=opt.tilt, seed=opt.seed)
     box = Box()
+    reach = float(np.linalg.norm(box.size)) / 2
+    if not reach < opt.radius < 1e6:
+        raise ClrefractError(
+            f"--radius must put the cameras outside the box: more than {reach:.1f} mm "
+            f"(its half diagonal), got {opt.radius:g}"
+        )
+    if not 1.0 <= opt.fov_y <= 170.0:
+        raise ClrefractError(f"--fov must be 1 to 170 degrees, got {opt.fov_y:g}")
     out = Path(out)
     (out / "train").mkdir(parents=True, exist_ok=True)
     (out / "test").mkdir(parents=True, exist_ok=True)

@@ -227,6 +227,9 @@ def test_bad_inputs_give_one_line_errors(tmp_path, capsys):
         (["vase", "--eta", "2.5"], "between 1.2 and 1.9"),
         (["vase", "--tilt", "1/2"], "--tilt must be three angles"),
         (["sphere", "--eta", "1.6"], "apply to the family shapes"),
+        (["sphere", "--radius", "80"], "--radius must put the cameras outside the box"),
+        (["vase", "--radius", "nan"], "--radius must put the cameras outside the box"),
+        (["sphere", "--fov", "0"], "--fov must be 1 to 170 degrees"),
     ]
     for args, msg in cases:
         assert main(["dataset", "make", *args, "--out", str(out)]) == 2
@@ -241,7 +244,7 @@ def test_dataset_make_help_lists_the_family(capsys):
     text = " ".join(capsys.readouterr().out.split())
     for name in FAMILY + ("sphere", "prism", "drop"):
         assert name in text
-    assert "--eta" in text and "--tilt" in text
+    assert "--eta" in text and "--tilt" in text and "--radius" in text and "--fov" in text
 
 
 # -------------------------------------------------------------------------- a dataset
