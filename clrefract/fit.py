@@ -286,6 +286,25 @@ class FitConfig:
 LINE_SEARCH_ITERATIONS = 16
 
 
+# the start search's candidates: a level set's coarse offsets (cells) searched jointly with
+# the index, then line searches (index step, offset step in cells) of LINE_TRIES each; a
+# voxel grid's offsets (half cells) with a full index search each, then VOXEL_FINE indices
+LEVELSET_OFFSETS = (-6.0, -4.0, -3.0, -2.0, -1.0, 0.0, 1.0)
+LINE_ROUNDS = ((0, 0.5), (0.25, 0), (0, 0.125), (0.08, 0))
+LINE_TRIES = (-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)
+VOXEL_OFFSETS = (-3.0, -2.0, -1.0, 1.0)
+VOXEL_FINE = 7
+
+
+def search_losses(indices: int, smoothings: list[int]) -> int:
+    """Losses the start search evaluates at most, over `indices` coarse indices and, for a
+    level set, the smoothings of each shape (`smoothings`; none: a voxel grid's search)."""
+    if not smoothings:
+        return indices * (1 + len(VOXEL_OFFSETS)) + VOXEL_FINE
+    lines = len(LINE_ROUNDS) * len(LINE_TRIES)
+    return sum(len(LEVELSET_OFFSETS) * indices + lines + (n - 1) * (1 + lines) for n in smoothings)
+
+
 def load_config(path: Path | None, overrides: dict) -> FitConfig:
     """Defaults, then the TOML file, then command-line overrides (None values ignored)."""
     cfg = FitConfig()
@@ -502,6 +521,8 @@ class Fit:
         self.field = None
         self.engine = None
         self.guide = None  # a hash grid's line search: the level set it follows
+        self._search_bar = None  # the start search's progress, while it runs
+        self._best_seen = np.inf
         self.adam = None
         self.params = None
         self.stopped: dict | None = None  # why a diverged run stopped (results.json)
@@ -700,11 +721,20 @@ class Fit:
             return
         idx = self._mask_batch(7)
         etas = np.linspace(1.0, self.ds.scene.eta_range[1], 9)
+        shapes = self._start_shapes(hull) if levelset else []
+        self._search_bar = Progress(
+            1 + search_losses(len(etas) - 1, [len(s) for _, _, s in shapes]),
+            "start",
+            unit="losses",
+            stream=self.stream,
+        )
+        self._best_seen = np.inf
         self._set_start(hull, 1.0, 0.0)
         empty = self._forward_loss(idx)
+        self._search_bar.update()
         if levelset:
             best = (np.inf, 1.0, 0.0, 0.0, "visual", hull)
-            for name, shape, sigmas in self._start_shapes(hull):
+            for name, shape, sigmas in shapes:
                 # each shape's first smoothing searches index and offset jointly, the others
                 # near the shape's best pick
                 near = (np.inf, None)
@@ -718,6 +748,9 @@ class Fit:
         else:
             loss, eta, offset = self._search_voxel(hull, idx, etas)
             sigma, kind = 0.0, "visual"
+        bar, self._search_bar = self._search_bar, None
+        if bar.done < bar.total:  # candidates skipped (indices at or below 1)
+            bar.update(bar.total - bar.done, best=self._best_seen)
         if not loss < empty:
             loss, eta, offset, sigma, kind = empty, 1.0, 0.0, 0.0, "visual"
         hull = hull.smoothed(sigma)
@@ -761,7 +794,11 @@ class Fit:
 
     def _loss_of(self, hull, idx, eta: float, offset: float) -> float:
         self._set_start(hull, eta, offset)
-        return self._forward_loss(idx)
+        loss = self._forward_loss(idx)
+        if self._search_bar is not None:
+            self._best_seen = min(self._best_seen, loss)
+            self._search_bar.update(best=self._best_seen)
+        return loss
 
     def _search_voxel(self, hull, idx, etas):
         """Index, then offset with a full index search each (a visual hull is too big where
@@ -769,11 +806,11 @@ class Fit:
         then a finer index."""
         loss, eta = min((self._loss_of(hull, idx, e, 0.0), float(e)) for e in etas[1:])
         offset = 0.0
-        for o in hull.width / 2 * np.array([-3.0, -2.0, -1.0, 1.0]):
+        for o in hull.width / 2 * np.array(VOXEL_OFFSETS):
             trial = min((self._loss_of(hull, idx, e, o), float(e)) for e in etas[1:])
             if trial[0] < loss:
                 (loss, eta), offset = trial, float(o)
-        fine = eta + (etas[1] - etas[0]) * np.linspace(-0.75, 0.75, 7)
+        fine = eta + (etas[1] - etas[0]) * np.linspace(-0.75, 0.75, VOXEL_FINE)
         cands = [(self._loss_of(hull, idx, e, offset), float(e)) for e in fine if e > 1]
         loss, eta = min([(loss, eta), *cands])
         return loss, eta, offset
@@ -785,7 +822,7 @@ class Fit:
         placing to a fraction of a cell. `start` = (index, offset) skips the coarse grid."""
         step = etas[1] - etas[0]
         if start is None:
-            offsets = hull.width * np.array([-6.0, -4.0, -3.0, -2.0, -1.0, 0.0, 1.0])
+            offsets = hull.width * np.array(LEVELSET_OFFSETS)
             loss, eta, offset = min(
                 (self._loss_of(hull, idx, float(e), float(o)), float(e), float(o))
                 for o in offsets
@@ -794,15 +831,15 @@ class Fit:
         else:
             eta, offset = start
             loss = self._loss_of(hull, idx, eta, offset)
-        for de, do in [(0, 0.5), (0.25, 0), (0, 0.125), (0.08, 0)]:
+        for de, do in LINE_ROUNDS:
             if do:
-                cands = offset + hull.width * do * np.array([-3.0, -2.0, -1.0, 1.0, 2.0, 3.0])
+                cands = offset + hull.width * do * np.array(LINE_TRIES)
                 for o in cands:
                     trial = self._loss_of(hull, idx, eta, float(o))
                     if trial < loss:
                         loss, offset = trial, float(o)
             else:
-                for e in eta + step * de * np.array([-3.0, -2.0, -1.0, 1.0, 2.0, 3.0]):
+                for e in eta + step * de * np.array(LINE_TRIES):
                     if e > 1:
                         trial = self._loss_of(hull, idx, float(e), offset)
                         if trial < loss:

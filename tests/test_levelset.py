@@ -143,17 +143,31 @@ def test_files_round_trip_and_name_the_file_on_error(tmp_path):
         g.set_data(np.append(np.full(125, np.nan), 1.5))
 
 
-def test_fit_starts_from_the_smoothed_hull_near_the_truth(tmp_path):
+def test_fit_starts_from_the_smoothed_hull_near_the_truth(tmp_path, monkeypatch):
     """A glass sphere at 48 x 48 pixels: the start alone (line searches on the index, the
     offset and the smoothing of the hull) finds the index within 0.06 and beats empty space
-    by a large factor, in the box around the object."""
-    from clrefract.fit import load_config, prepare_fit
+    by a large factor, in the box around the object. Its progress bar counts every loss the
+    search evaluates."""
+    import io
+
+    from clrefract.fit import Fit, load_config, prepare_fit, search_losses
     from clrefract.synth import MakeOptions, make_dataset
 
     data = tmp_path / "sphere"
     make_dataset("sphere", data, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
     cfg = load_config(None, dict(field="levelset", res=32, iterations=2, batch=2048))
-    fit = prepare_fit(data, tmp_path / "run", cfg)
+    calls = []
+    forward = Fit._forward_loss
+    monkeypatch.setattr(
+        Fit, "_forward_loss", lambda self, idx: calls.append(1) or forward(self, idx)
+    )
+    log = io.StringIO()
+    fit = prepare_fit(data, tmp_path / "run", cfg, stream=log)
+    monkeypatch.undo()
+    total = 1 + search_losses(8, [6, 3, 3])  # the hull's 6 smoothings, two flows' 3 each
+    assert len(calls) == total == 1 + 80 + 5 * 25 + 2 * (80 + 2 * 25)
+    bars = [line for line in log.getvalue().splitlines() if line.startswith("start [")]
+    assert bars and f" {total}/{total} " in bars[-1] and "best " in bars[-1]
     info = json.loads((tmp_path / "run" / "init.json").read_text())
     assert abs(info["eta"] - 1.5) < 0.06, info  # measured 1.458 at 48 pixels
     assert info["loss"] < info["loss_empty"] / 3, info
