@@ -73,7 +73,11 @@ def refraction_mask(
     _, d = cam.rays()
     straight = env.lookup(d).reshape(cam.height, cam.width, 3)
     diff = np.abs(srgb(image)[0] - srgb(straight)[0]).max(axis=-1)
-    mask = ndimage.binary_closing(ndimage.median_filter(diff, size=3) > threshold, iterations=2)
+    # closed with the frame's edge pixels carried on beyond it: closing erodes what touches
+    # the border otherwise, and an object that runs off the frame would stop short of it
+    pad = 2
+    marked = np.pad(ndimage.median_filter(diff, size=3) > threshold, pad, mode="edge")
+    mask = ndimage.binary_closing(marked, iterations=pad)[pad:-pad, pad:-pad]
     mask = ndimage.binary_fill_holes(mask)
     # a ray through two parallel faces leaves parallel to how it came, shifted: with the
     # environment at infinity it looks like air, so a flat-faced object (a cube, a prism)

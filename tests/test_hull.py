@@ -106,6 +106,22 @@ def test_cameras_close_to_a_large_box_carve_beyond_their_frames(tmp_path):
         assert (inside & ball).sum() / (inside | ball).sum() > 0.6
 
 
+def test_a_refraction_mask_reaches_the_frame_where_the_object_runs_off_it(sphere_dataset):
+    """Pixels that differ from the straight view up to the frame's edge stay marked to the
+    edge: the closing that mends a mask's small gaps must not erode it at the border (an
+    object that overflows the frame would stop short of it, and be carved beyond)."""
+    ds = Dataset(sphere_dataset)
+    env = ds.envmap()
+    cam = ds.train[0]
+    _, d = cam.rays()
+    img = env.lookup(d).reshape(cam.height, cam.width, 3)
+    img[10:30, :12] = env.lookup(-d).reshape(cam.height, cam.width, 3)[10:30, :12] + 0.5
+    img[:, 20:] = env.lookup(d).reshape(cam.height, cam.width, 3)[:, 20:]  # the rest is air
+    mask = refraction_mask(cam, img, env)
+    assert mask[11:29, :11].all()  # the two columns at the edge were eroded before
+    assert not mask[:, 16:].any() and not mask[:6].any()
+
+
 def test_a_mask_that_runs_off_its_frame_carves_nothing_beyond_that_edge():
     """Beyond the frame a view knows only its edge: where the mask touches the edge the object
     may go on (not carved), where the edge is air the distance outside keeps growing."""
