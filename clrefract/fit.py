@@ -286,6 +286,14 @@ class FitConfig:
 LINE_SEARCH_ITERATIONS = 16
 
 
+def interface_step_scale(index: float) -> float:
+    """Factor on the default tracer step across a surface of glass up to this index: 1 up
+    to 1.5, below in proportion to the index contrast above it, so that a ray bends as much
+    per step (at 1.9 a quarter of a 1 mm interface made the truth's loss lowest at index
+    1.8, an eighth at 1.9)."""
+    return min(1.0, 0.5 / max(index - 1.0, 1e-6))
+
+
 # the start search's candidates: a level set's coarse offsets (cells) searched jointly with
 # the index, then line searches (index step, offset step in cells) of LINE_TRIES each; a
 # voxel grid's offsets (half cells) with a full index search each, then VOXEL_FINE indices
@@ -603,6 +611,11 @@ class Fit:
         )
 
     def start(self) -> None:
+        cfg = self.cfg
+        if cfg.field in ("levelset", "hashgrid") and cfg.step == 0:
+            scale = interface_step_scale(self.ds.scene.eta_range[1])
+            if scale < 1:  # recorded in config.toml, which render, eval and resume read
+                cfg.step = cfg.step_mm * scale
         if self.cfg.field == "levelset" or (self.cfg.field == "hashgrid" and self._hull_fit()):
             self.box = self._object_box()
         self._size_from_images()
@@ -621,7 +634,10 @@ class Fit:
         as its output bias alone would take thousands of steps to reach glass."""
         from dataclasses import replace
 
-        guide_cfg = replace(self.cfg, field="levelset", step=self.cfg.width / 4)
+        top = self.ds.scene.eta_range[1]
+        guide_cfg = replace(
+            self.cfg, field="levelset", step=self.cfg.width / 4 * interface_step_scale(top)
+        )
         self._bind(make_field(guide_cfg, self.box, self.eta_max, res), step=guide_cfg.step)
         self._fill_hull()
         if self.cfg.optimizer == "line-search":
