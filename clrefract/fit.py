@@ -729,12 +729,22 @@ class Fit:
         lowest loss on a fixed batch of rays through the masks (line searches). A level set
         also picks how much to smooth the hull: a visual hull from finitely many views is
         faceted (flat between the view cones), and a sharp surface shows every facet."""
+        from .hull import touches_frame
+
         hull = self._hull(self.field.values.shape[0])
         rejected = [self.ds.train[v].name for v in hull.rejected]
         levelset = self._levelset_bound()
         if not hull.found:
             self.stream.write("start: no refraction mask agrees across views; eta = 1\n")
             return
+        masks = self._refraction_masks()
+        cut = [cam.name for cam, m in zip(self.ds.train, masks) if touches_frame(m)]
+        if 2 * len(cut) > len(masks):
+            self.stream.write(
+                f"start: warning: the object runs off the picture in {len(cut)} of "
+                f"{len(masks)} training views; where none of them sees it the hull cannot "
+                "close (frame the whole object, or give a tighter --box)\n"
+            )
         idx = self._mask_batch(7)
         etas = np.linspace(1.0, self.ds.scene.eta_range[1], 9)
         shapes = self._start_shapes(hull) if levelset else []
@@ -782,6 +792,7 @@ class Fit:
             "loss": float(loss),
             "loss_empty": float(empty),
             "views_left_out": rejected,
+            "views_cut_by_frame": cut,
         }
         if rejected:
             self.stream.write(

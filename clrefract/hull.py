@@ -93,6 +93,11 @@ def refraction_mask(
     return mask
 
 
+def touches_frame(mask: np.ndarray) -> bool:
+    """The mask reaches the picture's edge: the object may go on beyond the frame."""
+    return bool(mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
+
+
 def mask_distance(mask: np.ndarray) -> np.ndarray:
     """Signed distance to the mask's boundary in pixels, positive inside."""
     inside = ndimage.distance_transform_edt(mask)

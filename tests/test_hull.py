@@ -1,5 +1,7 @@
 """Refraction masks and the visual hull that starts a fit on a solid object."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -183,6 +185,31 @@ def test_fit_starts_from_the_hull_filled_with_the_right_index(sphere_dataset, tm
     assert 0.01 < fit._free.mean() < 0.2
     m = fit.step()
     assert np.all(fit.params[~fit._free] == 1.0) and np.isfinite(m["loss"])
+
+
+def test_a_start_warns_when_the_object_runs_off_most_pictures(sphere_dataset, tmp_path):
+    """A 20 mm sphere seen from 100 mm at 12 degrees fills more than every frame: the start
+    says so (where no view sees the object the hull cannot close) and lists the views; the
+    protocol's views, which frame it whole, list none."""
+    import io
+
+    data = tmp_path / "tight"
+    make_dataset(
+        "sphere",
+        data,
+        MakeOptions(views=10, res=16, env_width=256, volume_res=16, radius=100.0, fov_y=12.0),
+    )
+    cfg = load_config(None, dict(iterations=1, res=16, step=2.0, batch=1024))
+    log = io.StringIO()
+    for folder in ("run", "framed"):
+        (tmp_path / folder).mkdir()
+    Fit(data, tmp_path / "run", cfg, stream=log).start()
+    info = json.loads((tmp_path / "run" / "init.json").read_text())
+    assert len(info["views_cut_by_frame"]) == 8  # all training views
+    assert "the object runs off the picture in 8 of 8 training views" in log.getvalue()
+    framed = Fit(sphere_dataset, tmp_path / "framed", cfg, stream=io.StringIO())
+    framed.start()
+    assert framed.init_info["views_cut_by_frame"] == []
 
 
 def test_faint_media_carve_nothing(tmp_path):
