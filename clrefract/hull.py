@@ -225,8 +225,8 @@ def visual_hull(
         tolerance,
         dists=[dists[v] for v in keep],
     )
-    # the box margin is air by construction; points no view sees (cameras close to a large
-    # box) are air too, at a finite distance: the flows and blurs of a hull take differences
+    # the box margin is air by construction; points behind every camera are air too, at a
+    # finite distance: the flows and blurs of a hull take differences
     m = box.margin
     wall = np.min(np.minimum(pts - lo, hi - pts), axis=1) - 2 * m
     sd = np.clip(sd, -float(np.linalg.norm(hi - lo)), wall)
