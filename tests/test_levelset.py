@@ -183,7 +183,7 @@ def test_high_index_glass_is_traced_with_a_step_fine_enough_to_find_its_index(tm
     """Glass of index 1.9 bends rays 1.8 times as hard across the interface as 1.5: at the
     default quarter of the width the true cylinder's loss is lowest at index 1.8 (measured
     0.0169 against 0.0183 at 1.9, 48 x 48 views); at the step scaled to the contrast (0.14
-    mm), at 1.9 (0.0133 against 0.0159). A fresh level-set run records that step."""
+    mm), at 1.9 (0.0138 against 0.0153). A fresh level-set run records that step."""
     from clrefract.fit import Fit, interface_step_scale, load_config, prepare_fit
     from clrefract.report import scene_truth
     from clrefract.synth import MakeOptions, make_dataset
