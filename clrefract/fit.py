@@ -456,13 +456,15 @@ def fit_to_field(
     seed: int = 0,
     surface: bool = True,
     rate: float = 1.0,
+    stream=None,
 ) -> float:
     """Fit a hash grid to another field at points of its box: uniform ones, and as many
     again around the interfaces, jittered by half the interface `width`. A solid with a
     signed distance (`source.sdf`: a level set, a scene's truth) is fitted as its surface
     (`fit_surface`) unless `surface` is False, any other field by its eta and gradient.
     Returns the RMS error of eta against the source; `rate` scales the distillation's
-    Adam rates (a refit from where the field is wants less than a start)."""
+    Adam rates (a refit from where the field is wants less than a start). With a `stream`
+    it shows its progress there (a start's distillation takes minutes)."""
     rng = np.random.default_rng([seed, 3])
     lo, size = np.asarray(field.box.lo), field.box.size
     solid = surface and hasattr(source, "sdf")
@@ -482,10 +484,15 @@ def fit_to_field(
         value_more, grad_more = sample(more)
         pts = np.concatenate([pts, more])
         value, grad = np.concatenate([value, value_more]), np.concatenate([grad, grad_more])
+    bar = Progress(iterations, "distil", stream=stream) if stream is not None else None
     if solid:
-        field.fit_surface(pts, value, grad, source.eta, width, iterations, seed=seed, rate=rate)
+        field.fit_surface(
+            pts, value, grad, source.eta, width, iterations, seed=seed, rate=rate, progress=bar
+        )
         return field.eta_rms(pts, source.eval(pts)[0])
-    return field.fit_values(pts, value, grad, scale=width, iterations=iterations, seed=seed)
+    return field.fit_values(
+        pts, value, grad, scale=width, iterations=iterations, seed=seed, progress=bar
+    )
 
 
 class Fit:
@@ -655,7 +662,14 @@ class Fit:
         """Start the hash grid as another field (`source.eval`) fitted into it, in the
         current box; returns the RMS error of eta."""
         field = self._make_field(0)
-        rms = fit_to_field(field, source, self.cfg.width, self.cfg.distil_iterations, self.cfg.seed)
+        rms = fit_to_field(
+            field,
+            source,
+            self.cfg.width,
+            self.cfg.distil_iterations,
+            self.cfg.seed,
+            stream=self.stream,
+        )
         self._bind(field)
         return rms
 

@@ -39,7 +39,14 @@ def _cfg(**kw):
 
 
 def test_hash_grid_starts_from_the_hull_in_the_objects_box(sphere, tmp_path):
-    fit = prepare_fit(sphere, tmp_path / "run", _cfg())
+    import io
+
+    log = io.StringIO()
+    fit = prepare_fit(sphere, tmp_path / "run", _cfg(), stream=log)
+    # the search's and the distillation's progress (minutes each on the quick protocol)
+    lines = log.getvalue().splitlines()
+    assert any(line.startswith("start [") and " 466/466 " in line for line in lines)
+    assert any(line.startswith("distil [") and " 300/300 " in line for line in lines)
     info = json.loads((tmp_path / "run" / "init.json").read_text())
     start = json.loads((tmp_path / "run" / "start.json").read_text())
     assert abs(info["eta"] - 1.5) < 0.06, info

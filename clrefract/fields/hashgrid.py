@@ -641,10 +641,11 @@ class HashGridField(Field):
         return eta, ge, hm, self._reverse2(ob, omb, mu, tape, p)
 
     def _distil(
-        self, pts, residual, iterations: int, batch: int, seed: int, lr=(3e-2, 3e-3)
+        self, pts, residual, iterations: int, batch: int, seed: int, lr=(3e-2, 3e-3), progress=None
     ) -> None:
         """Adam on a least-squares fit over n points: residual(i, o, grad o) gives, for the
-        points i of a batch, d loss / d o and d loss / d grad o."""
+        points i of a batch, d loss / d o and d loss / d grad o. `progress`: a bar
+        (clrefract.progress) told of each iteration."""
         from ..adam import Adam
 
         rng = np.random.default_rng(seed)
@@ -655,6 +656,8 @@ class HashGridField(Field):
             o, og, _, tape = self._forward2(pts[i], None, p, hessian=False)
             ob, omb, mu = residual(i, o, og)
             adam.step(p, self._reverse2(ob, omb, mu, tape, p), lr_scale=0.1 ** (it / iterations))
+            if progress is not None:
+                progress.update()
         self.set_data(p)
 
     def eta_rms(self, pts: np.ndarray, eta: np.ndarray) -> float:
@@ -676,6 +679,7 @@ class HashGridField(Field):
         iterations: int = 300,
         batch: int = 8192,
         seed: int = 0,
+        progress=None,
     ) -> float:
         """Fit the field to eta values at points, and to their gradient (scaled by `scale`
         mm: refraction follows the normals, which values alone leave rough), by least
@@ -700,7 +704,7 @@ class HashGridField(Field):
                 omb = w * g1
             return ob, omb, mu
 
-        self._distil(pts, residual, iterations, batch, seed)
+        self._distil(pts, residual, iterations, batch, seed, progress=progress)
         return self.eta_rms(pts, eta)
 
     def fit_surface(
@@ -714,6 +718,7 @@ class HashGridField(Field):
         batch: int = 8192,
         seed: int = 0,
         rate: float = 1.0,
+        progress=None,
     ) -> None:
         """Fit the field to a solid of index `eta` bounded by the zero set of a signed
         distance phi (mm, negative inside; its gradient grad_phi) with an interface of
@@ -729,7 +734,7 @@ class HashGridField(Field):
         phi = np.asarray(phi, np.float64).reshape(-1)
         if self.config.output == "ramp":
             lr = (RAMP_LR[0] * rate, RAMP_LR[1] * rate)
-            self._fit_ramp(pts, phi, grad_phi, eta, width, iterations, batch, seed, lr)
+            self._fit_ramp(pts, phi, grad_phi, eta, width, iterations, batch, seed, lr, progress)
             return
         # the interior's output: eta there is the index (as saturated as the far side if the
         # index is at eta_max; unused when there is no interior)
@@ -754,11 +759,12 @@ class HashGridField(Field):
             mu = 2.0 * SURFACE_GRAD_WEIGHT * width**2 / n * (og - grad_target[i])
             return 2.0 / n * r, np.ones(n), mu
 
-        self._distil(
-            pts, residual, iterations, batch, seed, (SURFACE_LR[0] * rate, SURFACE_LR[1] * rate)
-        )
+        lr = (SURFACE_LR[0] * rate, SURFACE_LR[1] * rate)
+        self._distil(pts, residual, iterations, batch, seed, lr, progress)
 
-    def _fit_ramp(self, pts, phi, grad_phi, eta, width, iterations, batch, seed, lr) -> None:
+    def _fit_ramp(
+        self, pts, phi, grad_phi, eta, width, iterations, batch, seed, lr, progress=None
+    ) -> None:
         """fit_surface for the ramp output: o = -2 phi / width, so that eta follows the
         level set's ramp S(1/2 - phi / width) exactly, up to o_in inside (eta there is the
         index) and down to RAMP_FLOOR outside; past those only the side counts."""
@@ -782,7 +788,7 @@ class HashGridField(Field):
             mu[~ramp[i]] = 0.0
             return 2.0 / n * r, np.ones(n), mu
 
-        self._distil(pts, residual, iterations, batch, seed, lr)
+        self._distil(pts, residual, iterations, batch, seed, lr, progress)
 
     def regularizer(self, params: np.ndarray) -> tuple[float, np.ndarray]:
         """Mean over fixed points where the window is 1 of (cell * d eta / dx_a)^2 over the axes,
