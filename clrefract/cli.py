@@ -611,8 +611,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--step",
         type=float,
-        help="integrator step, mm (default: width/4 for level sets and hash grids, half a "
-        "cell of the final grid for voxel grids)",
+        help="integrator step, mm (default: width/4 for level sets and hash grids, finer "
+        "above index 1.5; half a cell of the final grid for voxel grids)",
     )
     p.add_argument("--queues", type=int, help="command queues the batch is split across")
     p.add_argument("--precision", choices=["float32", "float64"])

@@ -125,8 +125,9 @@ class FitConfig:
     block_until: float = 0.5
     env_blur: float = 0.0  # initial environment blur in pixels, sharpened to 0
     blur_until: float = 0.5  # fraction of the iterations over which the blur goes to 0
-    # mm; 0: width/4 for a level set and a hash grid; half a cell of the final grid for a
-    # voxel grid, resolved at the start into config.toml (voxel_step)
+    # mm; 0: width/4 for a level set and a hash grid (finer for glass above index 1.5,
+    # interface_step_scale); half a cell of the final grid for a voxel grid; the start
+    # resolves it into config.toml where it is not width/4 (voxel_step)
     step: float = 0.0
     # forward states kept every this many steps for the backward pass (0: constant memory);
     # they stop the re-integrated ray drifting away through sharp interfaces
@@ -639,12 +640,7 @@ class Fit:
         """A hash grid starts as the level-set start (hull, index and offset searched the
         same way), fitted to its eta at points of the box: it starts where a level set does,
         as its output bias alone would take thousands of steps to reach glass."""
-        from dataclasses import replace
-
-        top = self.ds.scene.eta_range[1]
-        guide_cfg = replace(
-            self.cfg, field="levelset", step=self.cfg.width / 4 * interface_step_scale(top)
-        )
+        guide_cfg = self.guide_config()
         self._bind(make_field(guide_cfg, self.box, self.eta_max, res), step=guide_cfg.step)
         self._fill_hull()
         if self.cfg.optimizer == "line-search":
@@ -657,6 +653,15 @@ class Fit:
         self.init_info["distilled_rms"] = rms
         self.stream.write(f"start: hash grid fitted to the level-set start (eta RMS {rms:.4f})\n")
         (self.out / "init.json").write_text(json.dumps(self.init_info, indent=2))
+
+    def guide_config(self) -> FitConfig:
+        """The level set a hash grid starts from, and that its line search follows: the
+        fit's settings with a level set's own step at this dataset's index."""
+        from dataclasses import replace
+
+        cfg = replace(self.cfg, field="levelset", step=0.0)
+        cfg.step = cfg.step_mm * interface_step_scale(self.ds.scene.eta_range[1])
+        return cfg
 
     def start_from(self, source) -> float:
         """Start the hash grid as another field (`source.eval`) fitted into it, in the

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -106,7 +106,7 @@ class Guide:
                 f"{path}: the checkpoint holds no level set for the hash grid's line search "
                 "(a run begun with optimizer 'adam'?)"
             )
-        cfg = replace(fit.cfg, field="levelset", step=fit.cfg.width / 4)
+        cfg = fit.guide_config()
         eta_max = float(state["guide_eta_max"])
         field = make_field(cfg, fit.box, eta_max, int(state["guide_res"]))
         params = np.array(state["guide_params"], np.float64)
