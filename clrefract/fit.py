@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import start_losses
 from .adam import Adam
 from .dataset import Dataset, box_of, box_values
 from .errors import ClrefractError
@@ -29,6 +30,7 @@ from .imageio import atomic_path, ensure_out_dir
 from .limits import check_fit_config
 from .metrics import psnr_linear_batch
 from .progress import Progress
+from .start_losses import StartLosses, fingerprint
 
 try:
     import tomllib
@@ -538,6 +540,8 @@ class Fit:
         self.engine = None
         self.guide = None  # a hash grid's line search: the level set it follows
         self._search_bar = None  # the start search's progress, while it runs
+        self._losses = None  # the start search's losses (start_losses.py)
+        self._search_at = ""  # the shape and smoothing the search is at (their key)
         self._best_seen = np.inf
         self.adam = None
         self.params = None
@@ -774,25 +778,35 @@ class Fit:
             stream=self.stream,
         )
         self._best_seen = np.inf
-        self._set_start(hull, 1.0, 0.0)
-        empty = self._forward_loss(idx)
-        self._search_bar.update()
-        if levelset:
-            best = (np.inf, 1.0, 0.0, 0.0, "visual", hull)
-            for name, shape, sigmas in shapes:
-                # each shape's first smoothing searches index and offset jointly, the others
-                # near the shape's best pick
-                near = (np.inf, None)
-                for sigma in shape.width * sigmas:
-                    trial = self._search_levelset(shape.smoothed(sigma), idx, etas, near[1])
-                    if trial[0] < near[0]:
-                        near = (trial[0], trial[1:3])
-                    if trial[0] < best[0]:
-                        best = (*trial, float(sigma), name, shape)
-            loss, eta, offset, sigma, kind, hull = best
-        else:
-            loss, eta, offset = self._search_voxel(hull, idx, etas)
-            sigma, kind = 0.0, "visual"
+        self._losses = StartLosses(self.out, fingerprint(_toml(self.cfg), self.ds.root))
+        try:
+            self._search_at = "empty"
+            empty = self._loss_of(hull, idx, 1.0, 0.0)
+            if levelset:
+                best = (np.inf, 1.0, 0.0, 0.0, "visual", hull)
+                for name, shape, sigmas in shapes:
+                    # each shape's first smoothing searches index and offset jointly, the
+                    # others near the shape's best pick
+                    near = (np.inf, None)
+                    for sigma in shape.width * sigmas:
+                        self._search_at = f"{name}|{sigma:.9g}"
+                        trial = self._search_levelset(shape.smoothed(sigma), idx, etas, near[1])
+                        if trial[0] < near[0]:
+                            near = (trial[0], trial[1:3])
+                        if trial[0] < best[0]:
+                            best = (*trial, float(sigma), name, shape)
+                loss, eta, offset, sigma, kind, hull = best
+            else:
+                self._search_at = "visual"
+                loss, eta, offset = self._search_voxel(hull, idx, etas)
+                sigma, kind = 0.0, "visual"
+        finally:
+            self._losses.close()
+        if self._losses.reused:
+            self.stream.write(
+                f"start: {self._losses.reused} losses taken up from an earlier start "
+                f"({self._losses.path.name})\n"
+            )
         bar, self._search_bar = self._search_bar, None
         if bar.done < bar.total:  # candidates skipped (indices at or below 1)
             bar.update(bar.total - bar.done, best=self._best_seen)
@@ -839,8 +853,13 @@ class Fit:
         return shapes
 
     def _loss_of(self, hull, idx, eta: float, offset: float) -> float:
-        self._set_start(hull, eta, offset)
-        loss = self._forward_loss(idx)
+        """The loss of a candidate start, traced, or kept from an interrupted start."""
+        key = f"{self._search_at}|{eta:.9g}|{offset:.9g}"
+        loss = self._losses.get(key)
+        if loss is None:
+            self._set_start(hull, eta, offset)
+            loss = self._forward_loss(idx)
+            self._losses.put(key, loss)
         if self._search_bar is not None:
             self._best_seen = min(self._best_seen, loss)
             self._search_bar.update(best=self._best_seen)
@@ -1319,6 +1338,11 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
     out = Path(out)
     if resume:
         if not (out / "config.toml").is_file():
+            if start_losses.count(out):
+                raise ClrefractError(
+                    f"{out}: its start was interrupted before the run began; the same "
+                    "command without --resume takes up the losses its search kept"
+                )
             raise ClrefractError(f"{out}: no run to resume (config.toml missing)")
         cfg = load_config(out / "config.toml", {})
         ensure_out_dir(out, "run folder")
@@ -1336,10 +1360,17 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
     try:
         return _start_run(dataset, out, cfg, stream)
     except BaseException:
-        # a start that failed (or was interrupted) leaves no run behind: nothing to resume
+        # a start that failed (or was interrupted) leaves no run behind, only its search's
+        # losses, which the same command run again takes up
         for name in START_FILES:
             if name not in had:
                 (out / name).unlink(missing_ok=True)
+        kept = start_losses.count(out)
+        if kept:
+            (stream or sys.stderr).write(
+                f"start: {kept} losses of its search kept in {out / start_losses.NAME}; "
+                "the same command takes them up\n"
+            )
         if fresh_folder and not any(out.iterdir()):
             out.rmdir()
         raise

@@ -1,0 +1,85 @@
+"""An interrupted start keeps its search's losses, and the same command takes them up."""
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from clrefract.errors import ClrefractError
+from clrefract.start_losses import NAME, StartLosses, count, fingerprint
+
+
+def test_losses_are_kept_for_their_own_fingerprint_only(tmp_path):
+    log = StartLosses(tmp_path, "a")
+    log.put("empty|1|0", 0.25)
+    log.put("visual|0|1.5|0", float("nan"))
+    log.close()
+    with (tmp_path / NAME).open("a") as f:
+        f.write('{"key": "visual|0|1.6')  # the write an interruption cut short
+    again = StartLosses(tmp_path, "a")
+    assert again.get("empty|1|0") == 0.25 and np.isnan(again.get("visual|0|1.5|0"))
+    assert again.get("visual|0|1.6|0") is None and again.reused == 2
+    again.close()
+    other = StartLosses(tmp_path, "b")  # other settings or data: nothing carried over
+    assert other.known == {} and count(tmp_path) == 0
+    other.close()
+
+
+def test_the_fingerprint_follows_the_settings_and_the_dataset_files(tmp_path):
+    (tmp_path / "images").mkdir()
+    image = tmp_path / "images" / "r_000.exr"
+    image.write_bytes(b"0" * 16)
+    first = fingerprint("res = 64", tmp_path)
+    assert fingerprint("res = 64", tmp_path) == first
+    assert fingerprint("res = 48", tmp_path) != first
+    image.write_bytes(b"1" * 17)  # a photograph replaced
+    assert fingerprint("res = 64", tmp_path) != first
+
+
+def test_an_interrupted_start_is_taken_up_where_it_stopped(tmp_path, monkeypatch):
+    """A level-set start on a small sphere, interrupted after 40 of its losses: the run
+    folder keeps them (and no run), --resume says what to do, and the same command traces
+    only the rest and picks the start of an uninterrupted run, to the bit."""
+    from clrefract.fit import Fit, load_config, prepare_fit, search_losses
+    from clrefract.synth import MakeOptions, make_dataset
+
+    data = tmp_path / "sphere"
+    make_dataset("sphere", data, MakeOptions(views=8, res=16, env_width=128, volume_res=16))
+    settings = dict(field="levelset", res=16, iterations=1, batch=256, tighten_hull=False)
+    total = 1 + search_losses(8, [6])
+    prepare_fit(data, tmp_path / "whole", load_config(None, settings))
+    whole = json.loads((tmp_path / "whole" / "init.json").read_text())
+
+    forward, calls = Fit._forward_loss, []
+
+    def interrupted(self, idx):
+        if len(calls) == 40:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return forward(self, idx)
+
+    run = tmp_path / "run"
+    monkeypatch.setattr(Fit, "_forward_loss", interrupted)
+    log = io.StringIO()
+    with pytest.raises(KeyboardInterrupt):
+        prepare_fit(data, run, load_config(None, settings), stream=log)
+    assert f"40 losses of its search kept in {run / NAME}" in log.getvalue()
+    assert not (run / "config.toml").exists() and count(run) == 40
+    with pytest.raises(ClrefractError, match="without --resume"):
+        prepare_fit(data, run, load_config(None, settings), resume=True)
+
+    calls.clear()
+    monkeypatch.setattr(
+        Fit, "_forward_loss", lambda self, idx: calls.append(1) or forward(self, idx)
+    )
+    log = io.StringIO()
+    prepare_fit(data, run, load_config(None, settings), stream=log)
+    # the search visits a few candidates twice, and traces each once
+    assert len(calls) == count(tmp_path / "whole") - 40 and count(run) == count(tmp_path / "whole")
+    assert 0.95 * total < count(run) <= total
+    assert "40 losses taken up from an earlier start" in log.getvalue()
+    again = json.loads((run / "init.json").read_text())
+    assert {k: again[k] for k in ("eta", "offset_mm", "smoothing_mm", "loss")} == {
+        k: whole[k] for k in ("eta", "offset_mm", "smoothing_mm", "loss")
+    }
