@@ -408,53 +408,59 @@ class HashGridField(Field):
 
     # --- NumPy reference ---------------------------------------------------------------------
     def _corner_indices(self, cell: np.ndarray, level: int) -> np.ndarray:
-        """Table indices (n, 8) of the corners of cells (n, 3) of one level."""
+        """Table indices (n, 8) of the corners of cells (n, 3) of one level: per axis the
+        low and high vertex, combined by broadcasting (corner 4a + 2b + d as _CORNERS)."""
         c = self.config
-        v = cell[:, None, :] + _CORNERS[None]  # (n, 8, 3) integer vertices
+        v = cell[:, :, None] + np.arange(2)  # (n, 3, 2): low and high vertex per axis
+        x, y, z = v[:, 0, :, None, None], v[:, 1, None, :, None], v[:, 2, None, None, :]
         if c.dense[level]:
-            return dense_index(v[..., 0], v[..., 1], v[..., 2], c.resolutions[level])
-        return hash_index(v[..., 0], v[..., 1], v[..., 2], c.log2_table)
+            idx = dense_index(x, y, z, c.resolutions[level])
+        else:
+            idx = hash_index(x, y, z, c.log2_table)
+        return idx.reshape(len(cell), 8)
 
     def _level_corners(self, u: np.ndarray, inside: np.ndarray, level: int, second=False):
         """The 8 corners of the cell holding normalised points u (n, 3) on one level.
 
         Returns table indices (n, 8), corner weights w (n, 8), their gradient in x
-        dw (n, 8, 3) and, with `second`, their Hessian in x ddw (n, 8, 3, 3)."""
+        dw (n, 8, 3) and, with `second`, their Hessian in x ddw (n, 8, 3, 3). Each is a
+        product of one factor per axis (1 - s or s, and their derivatives), formed as an
+        outer product of the axes' (low, high) pairs."""
         c = self.config
+        n = len(u)
         n_l = c.resolutions[level]
         p = u * n_l
         cell = np.clip(np.floor(p).astype(np.int64), 0, n_l - 1)
-        t = p - cell
-        s, ds, dds = _axis_weights(t, c.interp == "smoothstep")
+        s, ds, dds = _axis_weights(p - cell, c.interp == "smoothstep")
         scale = n_l / self.box.size  # dp/dx per axis
         ds = ds * scale * inside  # clamped coordinates have zero derivative
-        dds = dds * scale**2 * inside
-        # per corner and axis: weight 1 - s (low) or s (high), and its derivatives
-        hi = _CORNERS[None, :, :].astype(bool)  # (1, 8, 3)
-        a = np.where(hi, s[:, None, :], 1.0 - s[:, None, :])  # (n, 8, 3)
-        da = np.where(hi, ds[:, None, :], -ds[:, None, :])
-        w = a.prod(axis=2)
-        dw = np.stack(
-            [
-                da[..., 0] * a[..., 1] * a[..., 2],
-                a[..., 0] * da[..., 1] * a[..., 2],
-                a[..., 0] * a[..., 1] * da[..., 2],
-            ],
-            axis=2,
-        )
+        a = np.stack([1.0 - s, s], axis=2)  # (n, 3, 2): low and high factor per axis
+        da = np.stack([-ds, ds], axis=2)
+
+        def outer(fx, fy, fz):  # (n, 2) per axis -> (n, 8)
+            return (fx[:, :, None, None] * fy[:, None, :, None] * fz[:, None, None, :]).reshape(
+                n, 8
+            )
+
+        ax, ay, az = a[:, 0], a[:, 1], a[:, 2]
+        dx, dy, dz = da[:, 0], da[:, 1], da[:, 2]
+        w = outer(ax, ay, az)
+        dw = np.stack([outer(dx, ay, az), outer(ax, dy, az), outer(ax, ay, dz)], axis=2)
         idx = self._corner_indices(cell, level)
         if not second:
             return idx, w, dw
-        dda = np.where(hi, dds[:, None, :], -dds[:, None, :])
-        ddw = np.empty(w.shape + (3, 3))
+        dds = dds * scale**2 * inside
+        dda = np.stack([-dds, dds], axis=2)
+        f, df, ddf = (ax, ay, az), (dx, dy, dz), (dda[:, 0], dda[:, 1], dda[:, 2])
+        ddw = np.empty((n, 8, 3, 3))
         for r in range(3):
-            for q in range(3):
-                f = [a[..., 0], a[..., 1], a[..., 2]]
+            for q in range(r, 3):
+                g = list(f)
                 if r == q:
-                    f[r] = dda[..., r]
+                    g[r] = ddf[r]
                 else:
-                    f[r], f[q] = da[..., r], da[..., q]
-                ddw[..., r, q] = f[0] * f[1] * f[2]
+                    g[r], g[q] = df[r], df[q]
+                ddw[..., r, q] = ddw[..., q, r] = outer(*g)
         return idx, w, dw, ddw
 
     def _normalised(self, pts: np.ndarray):
