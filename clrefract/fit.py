@@ -778,7 +778,7 @@ class Fit:
             stream=self.stream,
         )
         self._best_seen = np.inf
-        self._losses = StartLosses(self.out, fingerprint(_toml(self.cfg), self.ds.root))
+        self._losses = StartLosses(self.out, fingerprint(_toml(self.cfg), self.ds.root, self.out))
         try:
             self._search_at = "empty"
             empty = self._loss_of(hull, idx, 1.0, 0.0)

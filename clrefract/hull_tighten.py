@@ -29,6 +29,7 @@ FLOW_TIMES = (110.0, 330.0)
 PUSH_GAIN = 8.0
 CHECK_EVERY = 5  # flow steps between checks of the rays
 MAX_RES = 64  # finer grids take the flow of this one (its steps grow as 1 / cell^2)
+MARGIN = 3.0  # cells outside the hull where a ray's samples are kept (_RayDepths)
 
 
 def tighten(hull: Hull, box: Box, cameras, masks, seed: int = 0, times=FLOW_TIMES) -> list:
@@ -55,8 +56,15 @@ def _resampled(grid: np.ndarray, shape) -> np.ndarray:
 def _tighten(hull: Hull, box: Box, cameras, masks, seed: int, times) -> list:
     res = hull.distance.shape
     h = (np.asarray(box.hi) - np.asarray(box.lo)) / (np.asarray(res) - 1)
-    rays = _RayDepths(box, res, *_mask_rays(cameras, masks, seed), 0.5 * float(h.min()))
     bound = hull.distance
+    rays = _RayDepths(
+        box,
+        res,
+        *_mask_rays(cameras, masks, seed),
+        0.5 * float(h.min()),
+        bound,
+        MARGIN * hull.width,
+    )
     need = rays.deepest(bound)[0]
     rays.keep(need > 0)  # a ray the hull itself misses (a tolerated hole) asks nothing
     want = np.minimum(DEPTH * hull.width, 0.5 * need[need > 0])
@@ -91,31 +99,46 @@ def _mask_rays(cameras, masks, seed: int):
 
 
 class _RayDepths:
-    """The largest value a grid takes along each ray across the box, and where."""
+    """The largest value a grid takes along each ray across the box, and where. The rays'
+    samples are made once, and only those where `bound` is above -`margin` are kept: the
+    flow's shape stays under the hull, so it peaks elsewhere unless it left the ray by more
+    than the margin (the pushes keep it on every ray). Rays with no sample kept peak at
+    -inf."""
 
-    def __init__(self, box: Box, res, origins, dirs, spacing: float, chunk: int = 8192):
+    def __init__(self, box: Box, res, origins, dirs, spacing: float, bound, margin: float):
         near, far = box.ray_span(origins, dirs)
         hit = far > np.maximum(near, 0.0)
-        self.o, self.d = origins[hit], dirs[hit]
-        self.box, self.spacing, self.chunk = box, spacing, chunk
-        self.scale = (np.asarray(res) - 1) / box.size
+        origins, dirs = origins[hit], dirs[hit]
+        scale = (np.asarray(res) - 1) / box.size
+        coords, rays = [], []
+        for a in range(0, len(origins), 8192):  # bounded temporaries
+            s = ray_samples(origins[a : a + 8192], dirs[a : a + 8192], box, spacing)
+            g = (s.points - np.asarray(box.lo)) * scale
+            near_hull = ndimage.map_coordinates(bound, g.T, order=1, mode="nearest") > -margin
+            coords.append(g[near_hull])
+            rays.append(s.ray[near_hull] + a)
+        self.g = np.concatenate(coords) if coords else np.empty((0, 3))
+        self._set(np.concatenate(rays) if rays else np.empty(0, np.int64), len(origins))
+
+    def _set(self, ray: np.ndarray, n: int) -> None:
+        self.ray, self.n = ray, n  # samples come ray by ray
+        self.rays, self.starts = np.unique(ray, return_index=True)
 
     def keep(self, which: np.ndarray) -> None:
-        self.o, self.d = self.o[which], self.d[which]
+        kept = which[self.ray]
+        new_id = np.cumsum(which) - 1
+        self.g = self.g[kept]
+        self._set(new_id[self.ray[kept]], int(which.sum()))
 
     def deepest(self, grid: np.ndarray):
-        n = len(self.o)
-        value, where = np.empty(n), np.empty((n, 3))
-        for a in range(0, n, self.chunk):
-            s = ray_samples(
-                self.o[a : a + self.chunk], self.d[a : a + self.chunk], self.box, self.spacing
-            )
-            g = (s.points - np.asarray(self.box.lo)) * self.scale
-            v = ndimage.map_coordinates(grid, g.T, order=1, mode="nearest")
-            top = np.maximum.reduceat(v, s.starts[:-1])
-            at = np.flatnonzero(v == top[s.ray])
-            first = at[np.unique(s.ray[at], return_index=True)[1]]  # samples come ray by ray
-            value[a : a + len(top)], where[a : a + len(top)] = top, g[first]
+        value, where = np.full(self.n, -np.inf), np.zeros((self.n, 3))
+        if len(self.ray) == 0:
+            return value, where
+        v = ndimage.map_coordinates(grid, self.g.T, order=1, mode="nearest")
+        value[self.rays] = np.maximum.reduceat(v, self.starts)
+        at = np.flatnonzero(v == value[self.ray])
+        first = at[np.unique(self.ray[at], return_index=True)[1]]
+        where[self.ray[first]] = self.g[first]
         return value, where
 
 

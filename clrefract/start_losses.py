@@ -16,12 +16,15 @@ from pathlib import Path
 NAME = "start_losses.jsonl"
 
 
-def fingerprint(settings: str, dataset: Path) -> str:
-    """A digest of the run's settings and of the dataset's files (names, sizes, times)."""
+def fingerprint(settings: str, dataset: Path, run: Path | None = None) -> str:
+    """A digest of the run's settings and of the dataset's files (names, sizes, times),
+    but for those of the `run` folder, which may lie inside the dataset's."""
     h = hashlib.sha256(settings.encode())
     root = Path(dataset).resolve()
     h.update(str(root).encode())
-    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+    skip = Path(run).resolve() if run is not None else None
+    files = (p for p in root.rglob("*") if p.is_file())
+    for path in sorted(p for p in files if skip is None or not p.is_relative_to(skip)):
         st = path.stat()
         h.update(f"{path.relative_to(root)}|{st.st_size}|{st.st_mtime_ns}\n".encode())
     return h.hexdigest()

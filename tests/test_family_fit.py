@@ -73,10 +73,23 @@ def test_tightened_hull_flattens_the_roofs_and_keeps_every_mask_ray(cube, cube_h
         a = h.distance > 0
         return (a & inside).sum() / (a | inside).sum()
 
-    rays = _RayDepths(box, hull.distance.shape, *_mask_rays(cube.train, masks, 0), 0.3)
+    mask_rays = _mask_rays(cube.train, masks, 0)
+    rays = _RayDepths(box, hull.distance.shape, *mask_rays, 0.3, hull.distance, np.inf)
     held = rays.deepest(hull.distance)[0] > 0
+    # the flow's rays keep only their samples within 3 cells of the hull: where a ray peaks
+    # above that, the same peak, at the same sample, as from all its samples
+    margin = 3 * hull.width
+    near = _RayDepths(box, hull.distance.shape, *mask_rays, 0.3, hull.distance, margin)
+    assert len(near.g) < 0.8 * len(rays.g)  # measured 70% on this coarse grid
     for tight in tighten(hull, box, cube.train, masks):  # one shape per flow time
         assert iou(tight) > iou(hull) + 0.04, (iou(hull), iou(tight))
         assert not np.any((tight.distance > 0) & (hull.distance <= 0))  # never beyond the hull
         assert 0.85 < (tight.distance > 0).sum() / inside.sum() < 1.1
-        assert np.mean(rays.deepest(tight.distance)[0][held] > 0) > 0.97
+        value, where = rays.deepest(tight.distance)
+        assert np.mean(value[held] > 0) > 0.97
+        value_near, where_near = near.deepest(tight.distance)
+        up = value > -margin
+        assert up.mean() > 0.9
+        np.testing.assert_array_equal(value_near[up], value[up])
+        np.testing.assert_array_equal(where_near[up], where[up])
+        assert np.all(value_near[~up] <= -margin)

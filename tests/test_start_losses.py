@@ -33,6 +33,9 @@ def test_the_fingerprint_follows_the_settings_and_the_dataset_files(tmp_path):
     first = fingerprint("res = 64", tmp_path)
     assert fingerprint("res = 64", tmp_path) == first
     assert fingerprint("res = 48", tmp_path) != first
+    (tmp_path / "run").mkdir()  # a run folder inside the dataset's is not part of it
+    (tmp_path / "run" / NAME).write_text("{}\n")
+    assert fingerprint("res = 64", tmp_path, tmp_path / "run") == first
     image.write_bytes(b"1" * 17)  # a photograph replaced
     assert fingerprint("res = 64", tmp_path) != first
 
