@@ -30,7 +30,6 @@ from .imageio import atomic_path, ensure_out_dir
 from .limits import check_fit_config
 from .metrics import psnr_linear_batch
 from .progress import Progress
-from .start_losses import StartLosses, fingerprint
 
 try:
     import tomllib
@@ -778,7 +777,8 @@ class Fit:
             stream=self.stream,
         )
         self._best_seen = np.inf
-        self._losses = StartLosses(self.out, fingerprint(_toml(self.cfg), self.ds.root, self.out))
+        digest = start_losses.fingerprint(_toml(self.cfg), self.ds.root, self.out)
+        self._losses = start_losses.StartLosses(self.out, digest)
         try:
             self._search_at = "empty"
             empty = self._loss_of(hull, idx, 1.0, 0.0)

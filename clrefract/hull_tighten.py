@@ -111,8 +111,9 @@ class _RayDepths:
         origins, dirs = origins[hit], dirs[hit]
         scale = (np.asarray(res) - 1) / box.size
         coords, rays = [], []
-        for a in range(0, len(origins), 8192):  # bounded temporaries
-            s = ray_samples(origins[a : a + 8192], dirs[a : a + 8192], box, spacing)
+        chunk = 8192  # rays at a time: bounded temporaries
+        for a in range(0, len(origins), chunk):
+            s = ray_samples(origins[a : a + chunk], dirs[a : a + chunk], box, spacing)
             g = (s.points - np.asarray(box.lo)) * scale
             near_hull = ndimage.map_coordinates(bound, g.T, order=1, mode="nearest") > -margin
             coords.append(g[near_hull])

@@ -60,13 +60,14 @@ class StartLosses:
         self._file.close()
 
 
-def _read(path: Path, digest: str) -> dict[str, float]:
-    """The losses of a file written for the same fingerprint; {} for any other file. A last
-    line cut short by the interruption is dropped."""
+def _read(path: Path, digest: str | None) -> dict[str, float]:
+    """The losses of a file written for the same fingerprint (any, with None); {} for any
+    other file. A last line cut short by the interruption is dropped."""
     out = {}
     try:
         lines = path.read_text().splitlines()
-        if not lines or json.loads(lines[0]).get("fingerprint") != digest:
+        head = json.loads(lines[0]) if lines else {}
+        if not lines or (digest is not None and head.get("fingerprint") != digest):
             return {}
     except (OSError, ValueError, AttributeError):
         return {}
@@ -82,6 +83,4 @@ def _read(path: Path, digest: str) -> dict[str, float]:
 def count(folder: Path) -> int:
     """How many losses a run folder's file holds (0 without one)."""
     path = Path(folder) / NAME
-    if not path.is_file():
-        return 0
-    return max(0, len(path.read_text().splitlines()) - 1)
+    return len(_read(path, None)) if path.is_file() else 0

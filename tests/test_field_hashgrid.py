@@ -10,7 +10,6 @@ from clrefract.errors import ClrefractError
 from clrefract.fields import load_field_file
 from clrefract.fields.base import Box
 from clrefract.fields.hashgrid import (
-    _CORNERS,
     HashGridConfig,
     HashGridField,
     dense_index,
@@ -22,6 +21,8 @@ BOX = Box((-50.0, -40.0, -45.0), (50.0, 60.0, 40.0), 4.0)  # unequal axes: a swa
 # levels N = 4, 8, 16, 32 with T = 2^12: levels 0 and 1 dense, 2 and 3 hashed
 SMALL = dict(levels=4, features=2, log2_table=12, n_min=4, n_max=32, hidden=16)
 CONFIGS = [("float64", 1), ("float64", 16), ("float32", 1), ("float32", 16)]
+# the 8 corners of a cell, corner 4a + 2b + d with a, b, d low (0) or high (1) along x, y, z
+CORNERS = [(a, b, d) for a in (0, 1) for b in (0, 1) for d in (0, 1)]
 
 
 def randomised(config: HashGridConfig, seed=0, out_scale=1.0) -> HashGridField:
@@ -160,7 +161,7 @@ def test_dense_levels_reproduce_direct_indexing():
         t = p - cell
         s = t * t * (3 - 2 * t)
         expect = np.zeros((len(pts), c.features))
-        for a, b, d in _CORNERS:
+        for a, b, d in CORNERS:
             w = (
                 np.where(a, s[:, 0], 1 - s[:, 0])
                 * np.where(b, s[:, 1], 1 - s[:, 1])

@@ -252,9 +252,6 @@ def _window_hessian(box: Box, pts: np.ndarray):
     return a.prod(axis=1), grad, hess
 
 
-_CORNERS = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])  # (8, 3)
-
-
 class HashGridField(Field):
     """eta(x) from a multi-resolution hash encoding and a small MLP (module docstring: layout).
 
@@ -409,7 +406,8 @@ class HashGridField(Field):
     # --- NumPy reference ---------------------------------------------------------------------
     def _corner_indices(self, cell: np.ndarray, level: int) -> np.ndarray:
         """Table indices (n, 8) of the corners of cells (n, 3) of one level: per axis the
-        low and high vertex, combined by broadcasting (corner 4a + 2b + d as _CORNERS)."""
+        low and high vertex, combined by broadcasting (corner 4a + 2b + d: a, b, d
+        low or high along x, y, z)."""
         c = self.config
         v = cell[:, :, None] + np.arange(2)  # (n, 3, 2): low and high vertex per axis
         x, y, z = v[:, 0, :, None, None], v[:, 1, None, :, None], v[:, 2, None, None, :]
