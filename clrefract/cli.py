@@ -561,19 +561,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--log2-table", type=int, help="hash table size, log2")
     p.add_argument("--hidden", type=int, help="MLP width")
     p.add_argument(
-        "--iterations", type=int, help="steps of the optimiser (Adam 600, line search 16)"
+        "--iterations",
+        type=int,
+        help="steps of the optimiser (Adam 600, line search 16, a hash grid's 12)",
     )
     p.add_argument("--batch", type=int, help="rays per iteration")
-    p.add_argument("--width", type=float, help="level-set interface width, mm")
+    p.add_argument(
+        "--width",
+        type=float,
+        help="interface width, mm (1; a hash grid from the hull 0.5)",
+    )
     p.add_argument("--lr", type=float, help="learning rate of voxel values")
     p.add_argument("--lr-phi", type=float, help="learning rate of the level set's distance, mm")
     p.add_argument("--lr-index", type=float, help="learning rate of the level set's index")
     p.add_argument(
         "--optimizer",
         choices=["adam", "line-search"],
-        help="adam (default), or line-search (level sets, and hash grids from the hull "
-        "through their level set: the rays whose adjoint stays tame, a smoothed shape "
-        "gradient and the best of a few moves along it)",
+        help="adam (the default of voxel grids and level sets), or line-search (level sets, "
+        "and hash grids from the hull, whose default it is, through their level set: the "
+        "rays whose adjoint stays tame, a smoothed shape gradient and the best of a few "
+        "moves along it)",
     )
     p.add_argument(
         "--growth-max",

@@ -268,6 +268,29 @@ def test_hash_grid_output_follows_the_start_and_sets_step_and_eta_max():
         load_config(None, dict(field="hashgrid", output="tanh")).validate()
 
 
+def test_hash_grid_from_the_hull_defaults_to_its_line_search_at_half_a_millimetre(tmp_path):
+    """What a hash grid fits with unless told: the line search at a 0.5 mm interface, 32,768
+    rays a step, 12 steps, each validated; what a file or a flag says wins, and the resolved
+    values survive config.toml. Other fields and a start from empty space keep Adam at 1 mm."""
+    from clrefract.fit import _toml
+
+    hg = load_config(None, dict(field="hashgrid"))
+    assert (hg.optimizer, hg.width, hg.step_mm) == ("line-search", 0.5, 0.125)
+    assert (hg.iterations, hg.line_batch, hg.validate_every) == (12, 32768, 1)
+    told = load_config(None, dict(field="hashgrid", width=1.0, optimizer="adam"))
+    assert (told.width, told.iterations, told.validate_every) == (1.0, 600, 25)
+    (tmp_path / "fit.toml").write_text('field = "hashgrid"\nline_batch = 4096\n')
+    from_file = load_config(tmp_path / "fit.toml", dict(iterations=3))
+    assert (from_file.line_batch, from_file.iterations, from_file.width) == (4096, 3, 0.5)
+    (tmp_path / "config.toml").write_text(_toml(hg))
+    assert load_config(tmp_path / "config.toml", {}) == hg
+    for other in (dict(field="hashgrid", init="empty"), dict(field="levelset"), {}):
+        cfg = load_config(None, other)
+        assert (cfg.optimizer, cfg.width, cfg.iterations) == ("adam", 1.0, 600), other
+    ls = load_config(None, dict(field="levelset", optimizer="line-search"))
+    assert (ls.width, ls.iterations, ls.validate_every, ls.line_batch) == (1.0, 16, 1, 0)
+
+
 @pytest.mark.parametrize(
     "key, value, message",
     [

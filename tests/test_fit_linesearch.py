@@ -102,6 +102,7 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path):
         hull_tolerance=0.2,
         hull_carve=0.0,
         field="hashgrid",
+        width=1.0,
         res=32,
         iterations=4,
         optimizer="line-search",

@@ -226,5 +226,6 @@ def test_high_index_glass_is_traced_with_a_step_fine_enough_to_find_its_index(tm
     saved = load_config(tmp_path / "start" / "config.toml", {})
     assert saved.step == pytest.approx(0.25 * 0.5 / 0.9)
     # a hash grid's level-set guide (its start, its line search, a resume) steps alike
+    # (at the hash grid's own default interface of 0.5 mm)
     hashgrid = Fit(small, tmp_path / "hg", load_config(None, dict(field="hashgrid")))
-    assert hashgrid.guide_config().step == pytest.approx(0.25 * 0.5 / 0.9)
+    assert hashgrid.guide_config().step == pytest.approx(0.5 / 4 * 0.5 / 0.9)

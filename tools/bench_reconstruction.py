@@ -13,10 +13,14 @@ metrics:
 
 For level sets the index column gives the start's and the fit's index beside the truth's.
 
-    python tools/bench_reconstruction.py [--field levelset|voxel] [--suite paper|family]
-        [--scenes sphere,prism,drop]
-        [--res 128] [--grid 64] [--iterations 100] [--json bench_results/reconstruction.json]
-        [--shard i/n] [--merge]
+    python tools/bench_reconstruction.py [--field levelset|voxel|hashgrid]
+        [--suite paper|family] [--scenes sphere,prism,drop] [--res 128] [--grid 64]
+        [--width MM] [--iterations N] [--config FIT.toml]
+        [--json bench_results/reconstruction.json] [--shard i/n] [--merge]
+
+--iterations defaults to the quick protocol's 100 Adam steps, or the fit's own count where
+its optimiser is the line search (a hash grid's default: 12); --width and --config's keys
+default to the fit's.
 
 --shard i/n runs every n-th scene from the i-th and writes reconstruction.shard-i-of-n.json
 (n jobs of a cluster array, or n processes on one machine); --merge then reads all n, prints
@@ -119,7 +123,7 @@ def main() -> None:
     ap.add_argument("--res", type=int, default=128, help="image size of the views")
     ap.add_argument("--grid", type=int, default=64, help="grid resolution (voxel or level set)")
     ap.add_argument("--field", default="levelset", choices=["levelset", "voxel", "hashgrid"])
-    ap.add_argument("--width", type=float, default=1.0, help="level-set interface width, mm")
+    ap.add_argument("--width", type=float, help="interface width, mm (default: the fit's)")
     ap.add_argument(
         "--iterations", type=int, help="default: 100 for Adam, the fit's own for a line search"
     )

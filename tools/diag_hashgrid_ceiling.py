@@ -6,7 +6,8 @@
 
 On a quick-protocol scene (128 x 128, 100 views; made in DATA if missing) the true object is
 fitted into the hash grid the way a fit's start is (`fit_to_field`, the fit's interface
-width), once per setting (`name:key=value,...` over the fit's defaults; `headroom` is eta_max
+width, 1 mm unless a setting says `width=`), once per setting (`name:key=value,...` over the
+fit's defaults; `headroom` is eta_max
 above the index in units of index - 1; `distil=values` fits eta and its gradient instead of
 the surface), and into a 64^3 level set on the same box for
 comparison. For each it prints the test views' PSNR and SSIM and the angle between grad eta
@@ -105,6 +106,7 @@ def main() -> None:
         headroom = kv.pop("headroom", None)
         interp = kv.pop("interp", None)
         surface = kv.pop("distil", "surface") == "surface"
+        kv.setdefault("width", 1.0)  # the interface its table was measured at
         cfg = load_config(None, dict(field="hashgrid", **kv))
         fit = Fit(root, root / "diag_ceiling_run", cfg, stream=io.StringIO())
         fit.box = fit._object_box()

@@ -38,7 +38,7 @@ def main() -> None:
     cfg = load_config(
         None,
         dict(field="hashgrid", batch=16384, distil_iterations=600, levels=6, log2_table=14,
-             hidden=16, val_views=4, adjoint_growth_max=1e6),
+             hidden=16, val_views=4, adjoint_growth_max=1e6, width=1.0, optimizer="adam"),
     )  # fmt: skip
     fit = Fit(root, root / "diag_run", cfg, stream=io.StringIO())
     fit.box = fit._object_box()
