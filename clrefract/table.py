@@ -57,10 +57,10 @@ PROTOCOLS: dict[str, dict] = {
             "meridian": dict(iterations=600, batch=8192),
             # 128^3 x 4 values: about 1 s per step on 2 busy cores (the backward's atomics)
             "synapse": dict(iterations=300, batch=8192),
-            # a hash-grid fit keeps its start's parameters or creeps from them (quick
-            # protocol, 60 steps: best iteration 50, 60 and 0 on sphere, prism, drop), and a
-            # step costs about 4 s on 2 cores: more steps would break the 90 minutes
-            "vertexnet": dict(iterations=100, batch=8192),
+            # the hash grid's own defaults: 12 line-search steps of about 30 s at a 0.5 mm
+            # interface, 11-13 minutes a scene alone on 2 cores (Adam's 100 steps of 4 s
+            # kept the start's parameters or crept from them)
+            "vertexnet": dict(batch=8192),
         },
     },
     "standard": {
@@ -69,12 +69,15 @@ PROTOCOLS: dict[str, dict] = {
             "grid": dict(iterations=1200, batch=16384),
             "meridian": dict(iterations=2400, batch=16384),
             "synapse": dict(iterations=2400, batch=16384),
-            "vertexnet": dict(iterations=1600, batch=16384),
+            "vertexnet": dict(batch=16384),  # its line search's own count of steps
         },
     },
     "full": {
         "data": dict(views=100, res=800),
-        "methods": {m: dict(iterations=20000, batch=65536) for m in METHODS},
+        "methods": {
+            **{m: dict(iterations=20000, batch=65536) for m in METHODS},
+            "vertexnet": dict(batch=65536),  # its line search's own count of steps
+        },
     },
 }
 
