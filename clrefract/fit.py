@@ -1419,6 +1419,7 @@ def _start_run(dataset: Path, out: Path, cfg: FitConfig, stream) -> Fit:
             indent=2,
         )
     )
+    fit.save_checkpoint()  # a run killed before its first step resumes from its start
     return fit
 
 

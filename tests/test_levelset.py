@@ -222,7 +222,10 @@ def test_high_index_glass_is_traced_with_a_step_fine_enough_to_find_its_index(tm
         "cylinder", small, MakeOptions(views=6, res=16, env_width=128, volume_res=16, eta=1.9)
     )
     run = dict(field="levelset", res=16, iterations=1, batch=256, tighten_hull=False)
-    prepare_fit(small, tmp_path / "start", load_config(None, run))
+    fit = prepare_fit(small, tmp_path / "start", load_config(None, run))
+    # killed before its first step (no Ctrl-C to save it), the run resumes from its start
+    again = prepare_fit(small, tmp_path / "start", load_config(None, run), resume=True)
+    assert again.it == 0 and np.array_equal(again.params, fit.params)
     saved = load_config(tmp_path / "start" / "config.toml", {})
     assert saved.step == pytest.approx(0.25 * 0.5 / 0.9)
     # a hash grid's level-set guide (its start, its line search, a resume) steps alike
