@@ -304,10 +304,8 @@ def _field_defaults(items: dict) -> None:
         for k, v in HASHGRID_HULL_DEFAULTS.items():
             items.setdefault(k, v)
     if items.get("optimizer") == "line-search":
-        hashgrid = field == "hashgrid"
-        items.setdefault(
-            "iterations", HASHGRID_LINE_SEARCH_ITERATIONS if hashgrid else LINE_SEARCH_ITERATIONS
-        )
+        steps = HASHGRID_LINE_SEARCH_ITERATIONS if field == "hashgrid" else LINE_SEARCH_ITERATIONS
+        items.setdefault("iterations", steps)
         # a step is a move that the held-out views must confirm: each one is validated
         items.setdefault("validate_every", 1)
 

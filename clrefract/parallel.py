@@ -254,9 +254,10 @@ def shard(engine, chunks: int = 16, ranks: Ranks | None = None):
 
 # --- the run -----------------------------------------------------------------------------
 def run_fit(dataset, out, cfg, resume: bool = False, stream=None) -> dict:
-    """`clrefract fit` over the ranks. Rank 0 prepares the run folder (start or resume) and
-    writes a checkpoint; the other ranks load that checkpoint, exactly as a resumed run
-    would, so all start from the same parameters. Returns rank 0's results ({} elsewhere)."""
+    """`clrefract fit` over the ranks. Rank 0 prepares the run folder (start or resume),
+    which leaves its checkpoint (a start writes that of iteration 0); the other ranks load
+    that checkpoint, exactly as a resumed run would, so all start from the same parameters.
+    Returns rank 0's results ({} elsewhere)."""
     from .fit import load_config, prepare_fit
 
     ranks = world()
@@ -267,7 +268,6 @@ def run_fit(dataset, out, cfg, resume: bool = False, stream=None) -> dict:
             error = None
             try:
                 fit = prepare_fit(dataset, out, cfg, resume, stream)
-                fit.save_checkpoint()  # what the other ranks start from
             except ClrefractError as exc:
                 error = str(exc)
             ranks.share_from_root(error)
