@@ -108,12 +108,12 @@ def world() -> Ranks:
 
 def _share_cpu(ranks: Ranks) -> None:
     """Ranks on one machine that run on its CPU (PoCL) split its cores between them rather
-    than each starting a thread per core. Must run before OpenCL starts; the user's own
-    settings win."""
+    than each starting a thread per core, as do their hash-grid distillations' threads.
+    Must run before OpenCL starts; the user's own settings win."""
     if ranks.local_size <= 1:
         return
     cores = max(1, (os.cpu_count() or 1) // ranks.local_size)
-    for var in ("POCL_CPU_MAX_CU_NUM", "POCL_MAX_PTHREAD_COUNT"):
+    for var in ("POCL_CPU_MAX_CU_NUM", "POCL_MAX_PTHREAD_COUNT", "CLREFRACT_HOST_THREADS"):
         os.environ.setdefault(var, str(cores))
 
 

@@ -57,8 +57,8 @@ PROTOCOLS: dict[str, dict] = {
             "meridian": dict(iterations=600, batch=8192),
             # 128^3 x 4 values: about 1 s per step on 2 busy cores (the backward's atomics)
             "synapse": dict(iterations=300, batch=8192),
-            # the hash grid's own defaults: 12 line-search steps of about 30 s at a 0.5 mm
-            # interface, 11-13 minutes a scene alone on 2 cores (Adam's 100 steps of 4 s
+            # the hash grid's own defaults: 16 line-search steps of about 28 s at a 0.5 mm
+            # interface, about 14 minutes a scene alone on 2 cores (Adam's 100 steps of 4 s
             # kept the start's parameters or crept from them)
             "vertexnet": dict(batch=8192),
         },

@@ -39,6 +39,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -52,6 +54,26 @@ INTERPS = ("smoothstep", "trilinear")
 OUTPUTS = ("sigmoid", "ramp")
 PRIMES = (1, 2654435761, 805459861)  # spatial-hash multipliers of x, y, z (instant-ngp)
 _CHUNK = 1 << 15  # points per block in the NumPy reference (bounds temporary memory)
+DISTIL_PIECE_MIN = 1024  # points per thread of a distillation batch, at least
+
+
+def _cores() -> int:
+    """CPU threads the host's NumPy work may use: CLREFRACT_HOST_THREADS (MPI ranks that
+    share a machine split its cores; clrefract.parallel), else the cores this process may
+    run on."""
+    told = os.environ.get("CLREFRACT_HOST_THREADS", "").strip()
+    if told:
+        if not told.isdigit() or int(told) < 1:
+            raise ClrefractError(
+                f"CLREFRACT_HOST_THREADS must be a whole number >= 1, got {told!r}"
+            )
+        return int(told)
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
 # fit_surface: the output's slope across the surface, per interface width (a 10-90% ramp of
 # 0.27 width; the fit steps w/8 through it), and its value far outside (eta - 1 there: 8e-7
 # of the index's)
@@ -420,10 +442,12 @@ class HashGridField(Field):
     def _level_corners(self, u: np.ndarray, inside: np.ndarray, level: int, second=False):
         """The 8 corners of the cell holding normalised points u (n, 3) on one level.
 
-        Returns table indices (n, 8), corner weights w (n, 8), their gradient in x
-        dw (n, 8, 3) and, with `second`, their Hessian in x ddw (n, 8, 3, 3). Each is a
-        product of one factor per axis (1 - s or s, and their derivatives), formed as an
-        outer product of the axes' (low, high) pairs."""
+        Returns table indices (n, 8), the corner weights and their gradient in x as one
+        array W (n, 4, 8) (row 0 the weights, rows 1-3 their x, y, z derivatives: features
+        and their gradient are then one product W @ values) and, with `second`, their
+        Hessian in x ddw (n, 8, 3, 3). Each is a product of one factor per axis (1 - s or
+        s, and their derivatives), formed as an outer product of the axes' (low, high)
+        pairs."""
         c = self.config
         n = len(u)
         n_l = c.resolutions[level]
@@ -442,11 +466,16 @@ class HashGridField(Field):
 
         ax, ay, az = a[:, 0], a[:, 1], a[:, 2]
         dx, dy, dz = da[:, 0], da[:, 1], da[:, 2]
-        w = outer(ax, ay, az)
-        dw = np.stack([outer(dx, ay, az), outer(ax, dy, az), outer(ax, ay, dz)], axis=2)
+        yz = (ay[:, :, None] * az[:, None, :]).reshape(n, 1, 4)
+        w = np.empty((n, 4, 2, 4))
+        w[:, 0] = ax[:, :, None] * yz
+        w[:, 1] = dx[:, :, None] * yz
+        w[:, 2] = ax[:, :, None] * (dy[:, :, None] * az[:, None, :]).reshape(n, 1, 4)
+        w[:, 3] = ax[:, :, None] * (ay[:, :, None] * dz[:, None, :]).reshape(n, 1, 4)
+        w = w.reshape(n, 4, 8)
         idx = self._corner_indices(cell, level)
         if not second:
-            return idx, w, dw
+            return idx, w
         dds = dds * scale**2 * inside
         dda = np.stack([-dds, dds], axis=2)
         f, df, ddf = (ax, ay, az), (dx, dy, dz), (dda[:, 0], dda[:, 1], dda[:, 2])
@@ -459,7 +488,7 @@ class HashGridField(Field):
                 else:
                     g[r], g[q] = df[r], df[q]
                 ddw[..., r, q] = ddw[..., q, r] = outer(*g)
-        return idx, w, dw, ddw
+        return idx, w, ddw
 
     def _normalised(self, pts: np.ndarray):
         u = (pts - np.asarray(self.box.lo)) / self.box.size
@@ -550,16 +579,17 @@ class HashGridField(Field):
         u, inside = self._normalised(pts)
         corners = []
         for level in range(c.levels):
-            idx, w, dw, *ddw = self._level_corners(u, inside, level, second=hessian)
+            idx, w, *ddw = self._level_corners(u, inside, level, second=hessian)
             v = tab[level][idx]  # (n, 8, F)
             sl = slice(level * c.features, (level + 1) * c.features)
-            f[:, sl] = np.einsum("nc,ncf->nf", w, v)
-            for d in range(3):
-                fg[d, :, sl] = np.einsum("nc,ncf->nf", dw[..., d], v)
-                if hessian:
+            fw = w @ v  # (n, 4, F): features, then their x, y, z derivatives
+            f[:, sl] = fw[:, 0]
+            fg[:, :, sl] = np.moveaxis(fw[:, 1:], 1, 0)
+            if hessian:
+                for d in range(3):
                     hw = ddw[0][..., d, :] @ mu[:, :, None]  # (n, 8, 1): row d of Hess w, mu
                     fh[d, :, sl] = np.einsum("nc,ncf->nf", hw[..., 0], v)
-            corners.append((idx, w, dw))
+            corners.append((idx, w))
         layers = self.mlp_layers(params)
         mut = mu.T[:, :, None] if hessian else None  # (3, n, 1)
         a, ag, ah = f, fg, fh
@@ -604,10 +634,11 @@ class HashGridField(Field):
                 hb, hmb = ab * s + amb * q, amb * s
         # table entries: tb = fb w + fmb (mu . grad w) per corner, summed in one bincount
         flat, vals = [], []
-        for level, (idx, w, dw) in enumerate(corners):
-            wmu = np.einsum("ncd,nd->nc", dw, mu)
+        for level, (idx, w) in enumerate(corners):
+            wmu = (w[:, 1:] * mu[:, :, None]).sum(1)  # mu . grad of the corner weights
             sl = slice(level * c.features, (level + 1) * c.features)
-            vals.append(w[:, :, None] * ab[:, None, sl] + wmu[:, :, None] * amb[:, None, sl])
+            # per corner and feature: w ab + wmu amb, one product of (n, 8, 2) by (n, 2, F)
+            vals.append(np.stack([w[:, 0], wmu], 2) @ np.stack([ab[:, sl], amb[:, sl]], 1))
             flat.append(
                 (level * c.table_size + idx[:, :, None]) * c.features + np.arange(c.features)
             )
@@ -649,19 +680,35 @@ class HashGridField(Field):
     ) -> None:
         """Adam on a least-squares fit over n points: residual(i, o, grad o) gives, for the
         points i of a batch, d loss / d o and d loss / d grad o. `progress`: a bar
-        (clrefract.progress) told of each iteration."""
+        (clrefract.progress) told of each iteration. A batch's forward and reverse passes
+        are cut into pieces run on threads (NumPy releases the GIL in its array work), one
+        per core, with BLAS held to one thread each: its own threads on top of them made
+        the distillation slower than one piece (README, Fitting)."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        from threadpoolctl import threadpool_limits
+
         from ..adam import Adam
 
         rng = np.random.default_rng(seed)
         p = self.params_vec.copy()
         adam = Adam(len(p), self.param_groups(lr_table=lr[0], lr_mlp=lr[1]))
-        for it in range(iterations):
-            i = rng.integers(0, len(pts), size=min(batch, len(pts)))
-            o, og, _, tape = self._forward2(pts[i], None, p, hessian=False)
-            ob, omb, mu = residual(i, o, og)
-            adam.step(p, self._reverse2(ob, omb, mu, tape, p), lr_scale=0.1 ** (it / iterations))
-            if progress is not None:
-                progress.update()
+        size = min(batch, len(pts))
+        pieces = max(1, min(_cores(), size // DISTIL_PIECE_MIN))
+        blas = threadpool_limits(1, user_api="blas") if pieces > 1 else nullcontext()
+        with ThreadPoolExecutor(pieces) as pool, blas:
+            for it in range(iterations):
+                i = rng.integers(0, len(pts), size=size)
+                xs = [pts[j] for j in np.array_split(i, pieces)]
+                fw = list(pool.map(lambda x: self._forward2(x, None, p, False), xs))
+                o = np.concatenate([f[0] for f in fw])
+                ob, omb, mu = residual(i, o, np.concatenate([f[1] for f in fw]))
+                ends = np.cumsum([0, *(len(x) for x in xs)])
+                parts = [(ob[a:b], omb[a:b], mu[a:b], f[3]) for a, b, f in zip(ends, ends[1:], fw)]
+                grad = sum(pool.map(lambda a: self._reverse2(*a, p), parts))
+                adam.step(p, grad, lr_scale=0.1 ** (it / iterations))
+                if progress is not None:
+                    progress.update()
         self.set_data(p)
 
     def eta_rms(self, pts: np.ndarray, eta: np.ndarray) -> float:
