@@ -703,9 +703,10 @@ class HashGridField(Field):
                 fw = list(pool.map(lambda x: self._forward2(x, None, p, False), xs))
                 o = np.concatenate([f[0] for f in fw])
                 ob, omb, mu = residual(i, o, np.concatenate([f[1] for f in fw]))
-                ends = np.cumsum([0, *(len(x) for x in xs)])
-                parts = [(ob[a:b], omb[a:b], mu[a:b], f[3]) for a, b, f in zip(ends, ends[1:], fw)]
-                grad = sum(pool.map(lambda a: self._reverse2(*a, p), parts))
+                # the same cuts as the points': array_split cuts equal lengths alike
+                cut = [np.array_split(x, pieces) for x in (ob, omb, mu)]
+                tapes = [f[3] for f in fw]
+                grad = sum(pool.map(lambda *a: self._reverse2(*a, p), *cut, tapes))
                 adam.step(p, grad, lr_scale=0.1 ** (it / iterations))
                 if progress is not None:
                     progress.update()
