@@ -104,8 +104,14 @@ class Tracer:
         self.runtime.check_precision(precision)
         self.field, self.box, self.step = field, box, float(step)
         self.integrator, self.precision = integrator, precision
-        self.lanes = lanes or self.runtime.default_lanes(precision)
+        self.lanes = lanes or field.lanes_on(self.runtime, self.runtime.default_lanes(precision))
         self.runtime.check_lanes(self.lanes, precision)
+        if field.lanes_on(self.runtime, self.lanes) != self.lanes:
+            raise ClrefractError(
+                f"{field.kind} fields run at most {field.gpu_lanes} lane(s) on "
+                f"{self.runtime.info.name} (its multi-lane kernels come out wrong on this "
+                "driver); leave --lanes unset"
+            )
         if tol is not None and max_steps is None:
             # the adaptive pair's steps shrink where the field needs it: room for attempts
             default_cap = max_steps_for(step / 64, float(np.linalg.norm(box.size)))

@@ -14,6 +14,7 @@ from clrefract.errors import ClrefractError
 from clrefract.fields.voxel import VoxelGrid
 from clrefract.gradcheck import directional_errors, lens_scene, smooth_env
 from clrefract.gradient import GradientEngine, backward_state_bytes, discrete_segment
+from clrefract.runtime import default_runtime
 from clrefract.tracer import Tracer
 
 EXACT = 1e-6
@@ -152,7 +153,8 @@ def test_hashgrid_discrete_adjoint_matches_finite_differences():
 
     field = lively(HashGridConfig(**SMALL))
     o, d, env, target = hg_scene(n_rays=100)
-    eng = GradientEngine(field, BOX, step=2.0, precision="float64", lanes=4, adjoint="discrete")
+    lanes = field.lanes_on(default_runtime(), 4)
+    eng = GradientEngine(field, BOX, step=2.0, precision="float64", lanes=lanes, adjoint="discrete")
     res = eng.loss_and_grad(o, d, target, env)
     p0 = field.data().copy()
     rng = np.random.default_rng(1)

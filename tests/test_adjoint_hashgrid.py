@@ -76,6 +76,7 @@ def kernel_adjoint_terms(field, pts, mu, w, precision, lanes):
     rt = runtime()
     cl = rt.cl
     dt = rt.real_dtype(precision)
+    lanes = field.lanes_on(rt, lanes)  # 1 on GPUs
     defines = {**field.defines(), **field.box.defines(), "LANES": lanes}
     sources = ["common.h", field.source, field.adjoint_source]
     prg = rt.build(sources, defines, precision, extra_source=POINTS_KERNEL)
@@ -221,7 +222,8 @@ def fd_errors(step, n_dirs=2, seed=1):
     directions u, at integrator step `step`."""
     field = lively(HashGridConfig(**SMALL))
     o, d, env, target = hg_scene()
-    eng = GradientEngine(field, BOX, step=step, precision="float64", lanes=4, runtime=runtime())
+    lanes = field.lanes_on(runtime(), 4)
+    eng = GradientEngine(field, BOX, step=step, precision="float64", lanes=lanes, runtime=runtime())
     res = eng.loss_and_grad(o, d, target, env)
     p0 = field.data().copy()
 

@@ -15,6 +15,7 @@ from clrefract.fields.hashgrid import (
     dense_index,
     hash_index,
 )
+from clrefract.runtime import default_runtime
 from clrefract.tracer import Tracer
 
 BOX = Box((-50.0, -40.0, -45.0), (50.0, 60.0, 40.0), 4.0)  # unequal axes: a swap shows
@@ -51,6 +52,8 @@ _TRACERS: dict = {}
 
 
 def tracer(name, precision, lanes):
+    """A tracer at `lanes`, or at the most this device runs the hash grid at (1 on GPUs)."""
+    lanes = FIELDS[name].lanes_on(default_runtime(), lanes)
     key = (name, precision, lanes)
     if key not in _TRACERS:
         _TRACERS[key] = Tracer(FIELDS[name], BOX, precision=precision, lanes=lanes)
@@ -316,7 +319,7 @@ def test_kernel_gradient_matches_its_finite_differences(lanes):
 
 def test_kernel_sees_parameter_updates():
     field = randomised(HashGridConfig(**SMALL), seed=12)
-    tr = Tracer(field, BOX, precision="float64", lanes=16)
+    tr = Tracer(field, BOX, precision="float64", lanes=field.lanes_on(default_runtime(), 16))
     pts = inner_points(50)
     before = tr.eval_field(pts)[0]
     p = field.data().copy()
@@ -554,3 +557,20 @@ def test_ramp_output_makes_glass_and_air_exact_and_puts_the_surface_in_place(gla
     assert abs(np.median(offset)) < 0.01 and np.percentile(np.abs(offset), 90) < 0.1, spread
     err = median_normal_error(f, pts, r, normal)
     assert err < 0.8 * values_error, (err, values_error)  # measured 1.33 against 1.97 deg
+
+
+def test_a_gpu_runs_the_hash_grid_at_one_lane(monkeypatch):
+    """Its multi-lane kernels come out wrong on NVIDIA's driver: on a device that is not a
+    CPU the tracer defaults to 1 lane and refuses more with a message, not a wrong eta."""
+    from dataclasses import replace
+
+    from clrefract.runtime import Runtime
+
+    rt = Runtime()
+    monkeypatch.setattr(rt, "info", replace(rt.info, kind="gpu"))
+    field = FIELDS["smoothstep"]
+    assert Tracer(field, BOX, precision="float32", runtime=rt).lanes == 1
+    with pytest.raises(ClrefractError, match="hashgrid fields run at most 1 lane"):
+        Tracer(field, BOX, precision="float32", lanes=8, runtime=rt)
+    cpu = default_runtime().info.kind == "cpu"
+    assert field.lanes_on(default_runtime(), 8) == (8 if cpu else 1)

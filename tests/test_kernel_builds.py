@@ -212,11 +212,18 @@ def test_a_failed_build_is_one_line_naming_the_driver_with_the_log_on_disk(tmp_p
     assert len(logs) == 1 and rt.info.driver in logs[0].read_text()
 
 
-def test_kernel_sources_are_found_beside_a_checkout_package(monkeypatch):
+def test_kernel_sources_are_found_beside_a_checkout_package(monkeypatch, tmp_path):
+    """A checkout's clrefract/ reads kernels_cl/ beside it, whatever is installed (here a
+    checkout laid out in tmp_path, so the test holds for a plain install too)."""
+    (tmp_path / "clrefract").mkdir()
+    (tmp_path / "kernels_cl").mkdir()
+    (tmp_path / "kernels_cl" / "probe.cl").write_text(runtime.kernel_source("probe.cl"))
+
     def missing(name):
         raise ModuleNotFoundError("No module named 'clrefract.kernels_cl'")
 
     monkeypatch.setattr(runtime.resources, "files", missing)
+    monkeypatch.setattr(runtime, "__file__", str(tmp_path / "clrefract" / "runtime.py"))
     assert "probe_builtins" in runtime.kernel_source("probe.cl")
     with pytest.raises(ClrefractError, match="no-such.cl"):
         runtime.kernel_source("no-such.cl")

@@ -90,6 +90,13 @@ class Field:
 
     kind: str = ""
     source: str = ""
+    # the most lanes its kernels give right answers at on devices other than CPUs (None: any)
+    gpu_lanes: int | None = None
+
+    def lanes_on(self, runtime, lanes: int) -> int:
+        """`lanes`, capped at gpu_lanes on a device that is not a CPU."""
+        cap = self.gpu_lanes
+        return lanes if cap is None or runtime.info.kind == "cpu" else min(lanes, cap)
 
     def defines(self) -> dict:
         raise NotImplementedError
