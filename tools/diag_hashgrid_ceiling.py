@@ -2,6 +2,7 @@
 
     python tools/diag_hashgrid_ceiling.py [--scene sphere] [--data bench_results/data]
         [--settings default "trilinear:interp=trilinear" "mlp64:hidden=64" ...]
+        [--levelset-res 64 128]
         [--json bench_results/diag_hashgrid_ceiling.json]
 
 On a quick-protocol scene (128 x 128, 100 views; made in DATA if missing) the true object is
@@ -9,8 +10,8 @@ fitted into the hash grid the way a fit's start is (`fit_to_field`, the fit's in
 width, 1 mm unless a setting says `width=`), once per setting (`name:key=value,...` over the
 fit's defaults; `headroom` is eta_max
 above the index in units of index - 1; `distil=values` fits eta and its gradient instead of
-the surface), and into a 64^3 level set on the same box for
-comparison. For each it prints the test views' PSNR and SSIM and the angle between grad eta
+the surface), and into level sets on the same box for comparison (64^3, or
+`--levelset-res`). For each it prints the test views' PSNR and SSIM and the angle between grad eta
 and the true surface normal at points within 0.3 mm of the surface (percentiles 50 / 90 /
 99): refraction follows the normals, and the images of glass need them to about a degree.
 """
@@ -81,6 +82,8 @@ def main() -> None:
     ap.add_argument("--scene", default="sphere")
     ap.add_argument("--data", default="bench_results/data")
     ap.add_argument("--settings", nargs="+", default=list(DEFAULT_SETTINGS))
+    ap.add_argument("--levelset-res", type=int, nargs="+", default=[64],
+                    help="level sets of the truth to compare with, cells per axis")  # fmt: skip
     ap.add_argument("--json", default="bench_results/diag_hashgrid_ceiling.json")
     args = ap.parse_args()
     root = quick_dataset(args.scene, args.data)
@@ -111,11 +114,11 @@ def main() -> None:
         fit = Fit(root, root / "diag_ceiling_run", cfg, stream=io.StringIO())
         fit.box = fit._object_box()
         truth = scene_truth(fit.ds)
-        if not rows:  # the same truth as a level set on the same box
+        for res in args.levelset_res if not rows else ():  # the truth on the same box
             level = LevelSetField.from_sdf(
-                lambda p, t=truth: t.sdf(p)[0], fit.box, 64, truth.eta, cfg.width
+                lambda p, t=truth: t.sdf(p)[0], fit.box, res, truth.eta, cfg.width
             )
-            report("level set 64^3", fit, level, 0.0, 0.0)
+            report(f"level set {res}^3", fit, level, 0.0, 0.0)
         top = cfg.hashgrid_eta_max(truth.eta)
         if headroom is not None:
             top = 1 + (truth.eta - 1) * (1 + headroom)
