@@ -36,6 +36,25 @@ def host_memory_bytes() -> int:
         return 64 * 2**30
 
 
+def host_cores() -> int:
+    """CPU cores this process may run on (its affinity where the system has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
+def host_threads() -> int:
+    """Threads the host's NumPy work may use: CLREFRACT_HOST_THREADS (MPI ranks that share a
+    machine split its cores; clrefract.parallel), else host_cores()."""
+    told = os.environ.get("CLREFRACT_HOST_THREADS", "").strip()
+    if not told:
+        return host_cores()
+    if not told.isdigit() or int(told) < 1:
+        raise ClrefractError(f"CLREFRACT_HOST_THREADS must be a whole number >= 1, got {told!r}")
+    return int(told)
+
+
 def check_memory(what: str, nbytes: float, available: int | None = None, place="memory") -> None:
     """Refuse `what` when it would need more than the machine (or device) has."""
     available = host_memory_bytes() if available is None else available

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ClrefractError
+from .limits import host_cores
 
 # variables that MPI launchers set in each process they start (OpenMPI, MPICH/Hydra and
 # Intel MPI, PMI-2 and PMIx under srun); a plain `python` leaves them unset, and importing
@@ -112,7 +113,7 @@ def _share_cpu(ranks: Ranks) -> None:
     Must run before OpenCL starts; the user's own settings win."""
     if ranks.local_size <= 1:
         return
-    cores = max(1, (os.cpu_count() or 1) // ranks.local_size)
+    cores = max(1, host_cores() // ranks.local_size)
     for var in ("POCL_CPU_MAX_CU_NUM", "POCL_MAX_PTHREAD_COUNT", "CLREFRACT_HOST_THREADS"):
         os.environ.setdefault(var, str(cores))
 

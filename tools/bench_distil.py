@@ -19,8 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from clrefract.fields.base import Box
-from clrefract.fields.hashgrid import HashGridConfig, HashGridField, _cores
+from clrefract.fields.hashgrid import HashGridConfig, HashGridField
 from clrefract.fit import FitConfig, hashgrid_config
+from clrefract.limits import host_threads
 
 
 def distil(cfg: HashGridConfig, box: Box, pts, phi, normal, steps: int, threads: int):
@@ -37,7 +38,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=0, help="0: one per core")
     ap.add_argument("--json", default="bench_results/distil.json")
     args = ap.parse_args()
-    threads = args.threads or _cores()
+    threads = args.threads or host_threads()
     cfg = hashgrid_config(FitConfig(field="hashgrid"), 1.5)  # from the hull: the ramp
     box = Box((-12.0, -12.0, -12.0), (12.0, 12.0, 12.0), 1.0)
     rng = np.random.default_rng(0)

@@ -21,6 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 from itertools import repeat
 from pathlib import Path
 
+from clrefract.limits import host_cores
 from clrefract.runtime import list_devices
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,13 +37,9 @@ def run_file(path: str, selector: str, timeout: float) -> dict:
             cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
         )
         out, rc = done.stdout + done.stderr, done.returncode
-    except subprocess.TimeoutExpired as exc:
-        out = (
-            (exc.stdout or b"").decode(errors="replace")
-            if isinstance(exc.stdout, bytes)
-            else (exc.stdout or "")
-        )
-        rc = None
+    except subprocess.TimeoutExpired as exc:  # its output may come as bytes despite text=True
+        out, rc = exc.stdout or "", None
+        out = out.decode(errors="replace") if isinstance(out, bytes) else out
     counts = {"passed": 0, "failed": 0, "errors": 0, "skipped": 0}
     tail = out.strip().splitlines()[-1:] if out.strip() else []
     for n, what in COUNTS.findall(tail[0] if tail else ""):
@@ -68,7 +65,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("files", nargs="*", help="test files (default: tests/test_*.py)")
     ap.add_argument("--devices", nargs="*", help="P:D selectors (default: every device)")
-    ap.add_argument("--jobs", type=int, default=max(1, (os.cpu_count() or 2) // 2))
+    ap.add_argument("--jobs", type=int, default=max(1, host_cores() // 2))
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per test file")
     ap.add_argument("--json", default="bench_results/suite_on_devices.json")
     ap.add_argument("--logs", help="folder for each file's pytest output")

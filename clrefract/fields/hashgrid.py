@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -48,6 +47,7 @@ import numpy as np
 
 from ..errors import ClrefractError
 from ..imageio import atomic_path
+from ..limits import host_threads
 from .base import Box, Field, _smoother, _smoother_d, _smoother_dd, box_window
 
 INTERPS = ("smoothstep", "trilinear")
@@ -55,23 +55,6 @@ OUTPUTS = ("sigmoid", "ramp")
 PRIMES = (1, 2654435761, 805459861)  # spatial-hash multipliers of x, y, z (instant-ngp)
 _CHUNK = 1 << 15  # points per block in the NumPy reference (bounds temporary memory)
 DISTIL_PIECE_MIN = 1024  # points per thread of a distillation batch, at least
-
-
-def _cores() -> int:
-    """CPU threads the host's NumPy work may use: CLREFRACT_HOST_THREADS (MPI ranks that
-    share a machine split its cores; clrefract.parallel), else the cores this process may
-    run on."""
-    told = os.environ.get("CLREFRACT_HOST_THREADS", "").strip()
-    if told:
-        if not told.isdigit() or int(told) < 1:
-            raise ClrefractError(
-                f"CLREFRACT_HOST_THREADS must be a whole number >= 1, got {told!r}"
-            )
-        return int(told)
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # macOS, Windows
-        return os.cpu_count() or 1
 
 
 # fit_surface: the output's slope across the surface, per interface width (a 10-90% ramp of
@@ -698,7 +681,7 @@ class HashGridField(Field):
         p = self.params_vec.copy()
         adam = Adam(len(p), self.param_groups(lr_table=lr[0], lr_mlp=lr[1]))
         size = min(batch, len(pts))
-        pieces = max(1, min(_cores(), size // DISTIL_PIECE_MIN))
+        pieces = max(1, min(host_threads(), size // DISTIL_PIECE_MIN))
         blas = threadpool_limits(1, user_api="blas") if pieces > 1 else nullcontext()
         with ThreadPoolExecutor(pieces) as pool, blas:
             for it in range(iterations):
