@@ -11,9 +11,10 @@ which the test views punish; a Gaussian of a few grid cells keeps the moves that
 
 Each step: the loss and adjoint gradient of a batch of rays through the masks; the rays
 that exit with an adjoint growth of at most `keep_growth` are kept and their gradient taken
-again; its phi part is smoothed by `grad_sigma` cells (the index is held: the start searched
-it); phi moves by the move in `line_steps` (the largest node move, mm) that lowers the kept
-rays' loss most, or stays.
+again; its phi part is smoothed by `grad_sigma` cells; phi moves by the move in `line_steps`
+(the largest node move, mm) that lowers the kept rays' loss most, or stays. With
+`index_steps`, the index then moves down its gradient by the best of them, or stays (the
+start searched it with the hull's shape, which a wrong normal makes look like another index).
 
 A hash grid from the hull takes these steps on the level set it was distilled from (its
 `Guide`), and is fitted to it again after each move that was taken (`refit_iterations`):
@@ -63,6 +64,15 @@ def check_line_search(cfg) -> None:
     if not steps or not all(s > 0 and np.isfinite(s) for s in steps):
         raise ClrefractError(f"line_steps must be positive moves in mm, got {cfg.line_steps}")
     cfg.line_steps = steps
+    try:
+        moves = tuple(float(s) for s in cfg.index_steps)
+    except (TypeError, ValueError):
+        moves = (-1.0,)
+    if not all(s > 0 and np.isfinite(s) for s in moves):
+        raise ClrefractError(
+            f"index_steps must be positive index moves (or empty), got {cfg.index_steps}"
+        )
+    cfg.index_steps = moves
     if cfg.env_blur > 0 or cfg.block > 1:
         raise ClrefractError(
             "optimizer 'line-search' compares sharp pixels: set env_blur = 0 and block = 0"
@@ -138,6 +148,8 @@ def line_search_step(fit) -> dict:
     else:
         with _on_guide(fit):
             row = _level_set_step(fit)
+        if row["index_move"]:
+            fit.set_eta_max(fit.cfg.hashgrid_eta_max(fit.guide.params[-1]))
         if row["step_mm"] > 0:
             row["distilled_rms"] = refit(fit)
     fit.it += 1
@@ -171,6 +183,7 @@ def _level_set_step(fit) -> dict:
         "loss": first.loss,
         "kept": float(ok.mean()),
         "step_mm": 0.0,
+        "index_move": 0.0,
         "psnr": psnr_linear_batch(first.radiance[exited], fit.rgb[idx][exited]),
     }
     if ok.any():
@@ -206,7 +219,32 @@ def search_along(fit, kept: np.ndarray) -> dict:
             if loss < best[0]:
                 best = (loss, float(s))
         set_params(fit, start + best[1] * move)
-    return {"loss_kept": r.loss, "loss_kept_after": best[0], "step_mm": best[1]}
+    row = {"loss_kept": r.loss, "step_mm": best[1], "index_move": 0.0}
+    if cfg.index_steps and r.grad[-1] != 0:
+        best = index_along(fit, kept, -np.sign(r.grad[-1]), best[0])
+        row["index_move"] = best[1]
+    row["loss_kept_after"] = best[0]
+    row["index"] = float(fit.params[-1])
+    return row
+
+
+def index_along(fit, kept: np.ndarray, sign: float, loss: float) -> tuple[float, float]:
+    """Move the index by the best of index_steps in the direction `sign` (or not at all)
+    for the kept rays whose loss is `loss` now; (their loss, the move taken)."""
+    start = fit.params.copy()
+    best = (loss, 0.0)
+    for s in fit.cfg.index_steps:
+        trial = start.copy()
+        trial[-1] += sign * s
+        set_params(fit, trial)
+        if fit.params[-1] == start[-1]:  # at a bound of the index
+            continue
+        trial_loss = fit._forward_loss(kept)
+        if trial_loss < best[0]:
+            best = (trial_loss, float(fit.params[-1] - start[-1]))
+    start[-1] += best[1]
+    set_params(fit, start)
+    return best
 
 
 def set_params(fit, params: np.ndarray) -> None:

@@ -48,6 +48,11 @@ class Hull:
         d = ndimage.gaussian_filter(np.clip(self.distance, -far, far), sigma / self.width)
         return Hull(d, self.width, self.mask_fraction)
 
+    def hollowed(self, depth: float) -> Hull:
+        """The shell of the hull `depth` mm deep under its surface."""
+        d = np.minimum(self.distance, depth - self.distance)
+        return Hull(d, self.width, self.mask_fraction, self.rejected)
+
     @property
     def occupancy(self) -> np.ndarray:
         return self.shell(0.0)

@@ -93,3 +93,48 @@ def test_tightened_hull_flattens_the_roofs_and_keeps_every_mask_ray(cube, cube_h
         np.testing.assert_array_equal(value_near[up], value[up])
         np.testing.assert_array_equal(where_near[up], where[up])
         assert np.all(value_near[~up] <= -margin)
+
+
+def test_a_hollowed_hull_keeps_the_shell_under_its_surface():
+    g = np.linspace(-10, 10, 21)
+    pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1)
+    from clrefract.hull import Hull
+
+    hull = Hull(8.0 - np.linalg.norm(pts, axis=-1), 1.0, 0.1)  # a ball of 8 mm, + inside
+    shell = hull.hollowed(3.0).distance
+    r = np.linalg.norm(pts, axis=-1)
+    assert np.all(shell[(r > 5.2) & (r < 7.8)] > 0) and np.all(shell[(r < 4.8) | (r > 8.2)] < 0)
+    assert shell.max() == pytest.approx(1.5, abs=0.05)  # half the depth, mid-shell
+
+
+def test_the_start_searches_shells_and_picks_one_where_the_loss_prefers_it(tmp_path, monkeypatch):
+    """A bowl's hollow shows in no silhouette, so its visual hull is a solid cap: on the
+    quick protocol, filled with glass of any index it renders worse than air, and the level
+    set started as empty space. The start also tries the hull hollowed to shells. Here the
+    search runs on a 48 x 48 bowl with a loss that knows the truth (1 - the IoU of the
+    level set's inside with the bowl's on the grid's nodes, plus the index error), in place
+    of the traced one: it must pick a shell, of the bowl's index, and beat the whole hull."""
+    import json
+
+    from clrefract.fit import Fit, load_config, prepare_fit
+
+    data = tmp_path / "bowl"
+    opts = MakeOptions(views=30, res=48, env_width=512, volume_res=32)
+    make_dataset("bowl", data, opts, stream=open("/dev/null", "w"))
+    truth = scene_truth(Dataset(data))
+
+    def oracle(self, idx):
+        pts = self.field.node_points()
+        inside, true = self.params[:-1] < 0, truth.sdf(pts)[0] < 0
+        iou = (inside & true).sum() / max((inside | true).sum(), 1)
+        return float(1 - iou + abs(self.params[-1] - truth.eta))
+
+    monkeypatch.setattr(Fit, "_forward_loss", oracle)
+    cfg = load_config(None, dict(field="levelset", res=32, iterations=1, tighten_hull=False))
+    prepare_fit(data, tmp_path / "run", cfg, stream=open("/dev/null", "w"))
+    info = json.loads((tmp_path / "run" / "init.json").read_text())
+    assert info["hull"].startswith("shell") and abs(info["eta"] - 1.5) < 0.02, info
+    assert info["loss"] < 0.5, info  # an IoU above one half
+    losses = [json.loads(line) for line in (tmp_path / "run" / "start_losses.jsonl").open()]
+    whole = min(r["loss"] for r in losses[1:] if r["key"].startswith("visual"))
+    assert info["loss"] < whole - 0.1, (info, whole)

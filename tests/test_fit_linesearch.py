@@ -97,7 +97,7 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path):
     defaults and six steps, Debian's PoCL: 0.52 of it, the test views 33.50 -> 35.04 dB).
     From the default hull, which leaves out views with holes and hugs the sphere, the start's
     held-out loss is 0.00054 and four steps reach 0.94 of it. A resumed run takes up the same
-    level set from its checkpoint."""
+    level set from its checkpoint, and the grid's index where its guide's index moved."""
     overrides = dict(
         hull_tolerance=0.2,
         hull_carve=0.0,
@@ -110,6 +110,7 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path):
         refit_iterations=150,
         tighten_hull=False,  # a sphere's visual hull is round already
         test_views=2,
+        index_steps=(0.01, 0.03),
     )
     result, start, rows, fit = _sphere_run(tmp_path, **overrides)
     moved = [r for r in rows if r["step_mm"] > 0]
@@ -121,7 +122,54 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path):
     again = prepare_fit(tmp_path / "sphere", fit.out, load_config(None, overrides), resume=True)
     assert again.it == 4
     assert np.array_equal(again.guide.params, fit.guide.params)
+    # the grid's top index follows its guide's, through the checkpoint and the best kept
+    top = again.field.config.eta_max
+    assert top == pytest.approx(again.cfg.hashgrid_eta_max(again.guide.params[-1]), abs=1e-12)
+    from clrefract.fields.hashgrid import HashGridField
+
+    kept = HashGridField.load(fit.out / "field.npz").config.eta_max
+    assert kept == pytest.approx(fit.best_eta_max or top, abs=1e-12)
     idx = fit._mask_batch(5)
     with_guide = fit.guide.engine.tracer.trace(fit.origins[idx], fit.dirs[idx])
     resumed = again.guide.engine.tracer.trace(again.origins[idx], again.dirs[idx])
     assert np.allclose(resumed.direction, with_guide.direction, atol=1e-6)
+
+
+@pytest.mark.parametrize("bad", [("a",), (0.01, 0.0), (float("inf"),)])
+def test_index_steps_must_be_positive_moves(bad):
+    with pytest.raises(ClrefractError, match="index_steps must be positive"):
+        load_config(None, dict(field="levelset", optimizer="line-search", index_steps=bad))
+
+
+def test_line_search_moves_a_wrong_index_towards_the_truth(tmp_path):
+    """A level set on the 48 x 48 sphere (index 1.5) set to index 1.35 after its start: four
+    steps that may move the index by 0.01 or 0.03 down its gradient take it at least 0.05
+    nearer the truth (Debian's PoCL: 1.45 in moves of 0.03, 0.03, 0.03, 0.01, where the start
+    searched 1.451 on a hull 1.7 mm too big), and not past it."""
+    from clrefract.fit import prepare_fit
+    from clrefract.synth import MakeOptions, make_dataset
+
+    data = tmp_path / "sphere"
+    make_dataset("sphere", data, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
+    cfg = load_config(
+        None,
+        dict(
+            field="levelset",
+            res=32,
+            iterations=4,
+            optimizer="line-search",
+            index_steps=(0.01, 0.03),
+            val_views=4,
+            tighten_hull=False,
+        ),
+    )
+    fit = prepare_fit(data, tmp_path / "run", cfg)
+    fit.params[-1] = 1.35
+    fit.field.set_data(fit.params)
+    fit._upload()
+    fit.run()
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
+    index = [r["index"] for r in rows]
+    assert index[-1] > 1.40 and index[-1] < 1.53, index
+    moves = [round(abs(r["index_move"]), 9) for r in rows]
+    assert set(moves) <= {0.0, 0.01, 0.03} and moves[0] == 0.03, rows

@@ -150,7 +150,8 @@ def test_fit_starts_from_the_smoothed_hull_near_the_truth(tmp_path, monkeypatch)
     search evaluates."""
     import io
 
-    from clrefract.fit import Fit, load_config, prepare_fit, search_losses
+    from clrefract.fit import Fit, load_config, prepare_fit
+    from clrefract.fit_start import search_losses
     from clrefract.start_losses import count
     from clrefract.synth import MakeOptions, make_dataset
 
@@ -165,8 +166,9 @@ def test_fit_starts_from_the_smoothed_hull_near_the_truth(tmp_path, monkeypatch)
     log = io.StringIO()
     fit = prepare_fit(data, tmp_path / "run", cfg, stream=log)
     monkeypatch.undo()
-    total = 1 + search_losses(8, [6, 3, 3])  # the hull's 6 smoothings, two flows' 3 each
-    assert total == 1 + 80 + 5 * 25 + 2 * (80 + 2 * 25)
+    # the hull's 6 smoothings, two flows' 3 each, three shells' coarse indices and the best's
+    total = 1 + search_losses(8, [6, 3, 3], 3)
+    assert total == 1 + 80 + 5 * 25 + 2 * (80 + 2 * 25) + 3 * 8 + 25
     # every candidate is traced once (the line searches revisit a few)
     assert len(calls) == count(tmp_path / "run") and 0.95 * total < len(calls) <= total
     bars = [line for line in log.getvalue().splitlines() if line.startswith("start [")]

@@ -44,13 +44,14 @@ def test_an_interrupted_start_is_taken_up_where_it_stopped(tmp_path, monkeypatch
     """A level-set start on a small sphere, interrupted after 40 of its losses: the run
     folder keeps them (and no run), --resume says what to do, and the same command traces
     only the rest and picks the start of an uninterrupted run, to the bit."""
-    from clrefract.fit import Fit, load_config, prepare_fit, search_losses
+    from clrefract.fit import Fit, load_config, prepare_fit
+    from clrefract.fit_start import search_losses
     from clrefract.synth import MakeOptions, make_dataset
 
     data = tmp_path / "sphere"
     make_dataset("sphere", data, MakeOptions(views=8, res=16, env_width=128, volume_res=16))
     settings = dict(field="levelset", res=16, iterations=1, batch=256, tighten_hull=False)
-    total = 1 + search_losses(8, [6])
+    total = 1 + search_losses(8, [6], 3)
     prepare_fit(data, tmp_path / "whole", load_config(None, settings))
     whole = json.loads((tmp_path / "whole" / "init.json").read_text())
 

@@ -11,7 +11,8 @@ metrics:
   the nodes of a voxel grid, its signed distance at the nodes of a level set, or a hash
   grid fitted to its eta and gradient the way a hash-grid start is fitted to its guide.
 
-For level sets the index column gives the start's and the fit's index beside the truth's.
+For level sets and hash grids from the hull the index column gives the start's and the fit's
+index beside the truth's.
 
     python tools/bench_reconstruction.py [--field levelset|voxel|hashgrid]
         [--suite paper|family] [--scenes sphere,prism,drop] [--res 128] [--grid 64]
@@ -103,11 +104,15 @@ def bench_scene(scene: str, args) -> dict:
     t0 = time.perf_counter()
     res = fit.run()
     row["fit"] = {**res, "seconds": row["start"]["seconds"] + time.perf_counter() - t0}
-    if cfg.field == "levelset":  # one index inside the surface: how far from the truth
+    if cfg.field == "levelset" or cfg.init == "hull" and cfg.field == "hashgrid":
+        # one index inside the surface: how far from the truth
         row["truth_index"] = float(truth.eta)
         init = json.loads((run / "init.json").read_text()) if (run / "init.json").is_file() else {}
         row["start"]["index"] = init.get("eta")
-        row["fit"]["index"] = float(fit.params[-1])
+        if cfg.field == "levelset":
+            row["fit"]["index"] = float(fit.params[-1])
+        else:  # its eta_max, less the sigmoid's headroom (the index a ramp's eta_max is)
+            row["fit"]["index"] = 1 + (fit.eta_max - 1) / (cfg.hashgrid_eta_max(2.0) - 1)
     return row
 
 

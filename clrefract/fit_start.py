@@ -1,0 +1,311 @@
+"""A fit's start from the visual hull: the refraction masks, the hull they carve, the box it
+needs, and the searches that fill it with the index and the offset (and, for a level set, the
+smoothing and the tightened shape) of lowest loss. `HullStart` is the part of `Fit` that does
+this; it reads the fit's dataset, config, field and loss.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from . import start_losses
+from .errors import ClrefractError
+from .progress import Progress
+
+# the start search's candidates: a level set's coarse offsets (cells) searched jointly with
+# the index, then line searches (index step, offset step in cells) of LINE_TRIES each; a
+# voxel grid's offsets (half cells) with a full index search each, then VOXEL_FINE indices
+LEVELSET_OFFSETS = (-6.0, -4.0, -3.0, -2.0, -1.0, 0.0, 1.0)
+LINE_ROUNDS = ((0, 0.5), (0.25, 0), (0, 0.125), (0.08, 0))
+LINE_TRIES = (-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)
+VOXEL_OFFSETS = (-3.0, -2.0, -1.0, 1.0)
+VOXEL_FINE = 7
+# depths (cells) of the shells a level set's start tries, each at offset 0 over the coarse
+# indices; the best of them is searched as the other shapes are, from its pick
+SHELL_CELLS = (2.0, 4.0, 6.0)
+
+
+def search_losses(indices: int, smoothings: list[int], shells: int = 0) -> int:
+    """Losses the start search evaluates at most, over `indices` coarse indices and, for a
+    level set, the smoothings of each shape (`smoothings`; none: a voxel grid's search) and
+    `shells` shells."""
+    if not smoothings:
+        return indices * (1 + len(VOXEL_OFFSETS)) + VOXEL_FINE
+    lines = len(LINE_ROUNDS) * len(LINE_TRIES)
+    shell = shells * indices + 1 + lines if shells else 0
+    return shell + sum(
+        len(LEVELSET_OFFSETS) * indices + lines + (n - 1) * (1 + lines) for n in smoothings
+    )
+
+
+class HullStart:
+    """Start a `Fit` from the visual hull of its training views (a mixin: the fit's own state)."""
+
+    def _hull_fit(self) -> bool:
+        return self.cfg.init == "hull"
+
+    def _refraction_masks(self) -> list:
+        from .hull import refraction_mask
+
+        if self._masks is None:
+            env = self._env_full
+            self._masks = [  # the user's object masks where the capture has them
+                self.ds.mask(cam)
+                if self.ds.has_mask(cam)
+                else refraction_mask(cam, self.ds.image(cam), env, self.cfg.mask_threshold)
+                for cam in self.ds.train
+            ]
+        return self._masks
+
+    def _object_box(self):
+        """The box around the visual hull that a level set needs: its margin (where the
+        window brings eta to 1) and a band of the interface width beyond the hull. Rays fly
+        straight to it, and its grid spends every node near the object."""
+        from .fields.base import Box
+
+        box = self.ds.box
+        hull = self._visual_hull(box, 48)
+        if not hull.found:
+            raise ClrefractError(
+                f"{self.ds.root}: the refraction masks do not agree on an object (a faint "
+                "medium such as gas?); a level set needs a surface: use --field voxel"
+            )
+        inside = np.argwhere(hull.distance > -hull.width)
+        ax = [np.linspace(box.lo[a], box.hi[a], 48) for a in range(3)]
+        lo = np.array([ax[a][inside[:, a].min()] for a in range(3)])
+        hi = np.array([ax[a][inside[:, a].max()] for a in range(3)])
+        pad = 2 * box.margin + 2 * self.cfg.width + hull.width
+        lo = np.maximum(lo - pad, box.lo)
+        hi = np.minimum(hi + pad, box.hi)
+        return Box(tuple(lo.tolist()), tuple(hi.tolist()), box.margin)
+
+    def _hull(self, res: int):
+        if res not in self._hulls:
+            self._hulls = {res: self._visual_hull(self.box, res)}
+        return self._hulls[res]
+
+    def _visual_hull(self, box, res: int):
+        """The training views' visual hull on res^3 nodes over box, by the fit's hull rule."""
+        from .hull import visual_hull
+
+        return visual_hull(
+            box,
+            self.ds.train,
+            self._refraction_masks(),
+            res,
+            tolerance=self.cfg.hull_tolerance,
+            carve=self.cfg.hull_carve,
+        )
+
+    def _update_free(self) -> None:
+        """Nodes whose eta may change: near the hull (everywhere without one)."""
+        self._free = None
+        if self._hull_fit() and self.cfg.field == "voxel" and self.cfg.free_cells >= 0:
+            hull = self._hull(self.field.values.shape[0])
+            if hull.found:
+                self._free = hull.dilated(self.cfg.free_cells).ravel()
+
+    def _fill_hull(self) -> None:
+        """Fill the hull with the index, and grow or shrink it by the offset, that give the
+        lowest loss on a fixed batch of rays through the masks (line searches). A level set
+        also picks how much to smooth the hull: a visual hull from finitely many views is
+        faceted (flat between the view cones), and a sharp surface shows every facet."""
+        from .hull import touches_frame
+
+        hull = self._hull(self.field.values.shape[0])
+        rejected = [self.ds.train[v].name for v in hull.rejected]
+        levelset = self._levelset_bound()
+        if not hull.found:
+            self.stream.write("start: no refraction mask agrees across views; eta = 1\n")
+            return
+        masks = self._refraction_masks()
+        cut = [cam.name for cam, m in zip(self.ds.train, masks) if touches_frame(m)]
+        if 2 * len(cut) > len(masks):
+            self.stream.write(
+                f"start: warning: the object runs off the picture in {len(cut)} of "
+                f"{len(masks)} training views; where none of them sees it the hull cannot "
+                "close (frame the whole object, or give a tighter --box)\n"
+            )
+        idx = self._mask_batch(7)
+        etas = np.linspace(1.0, self.ds.scene.eta_range[1], 9)
+        shapes = self._start_shapes(hull) if levelset else []
+        shells = len(SHELL_CELLS) if levelset and self.cfg.shell_starts else 0
+        self._search_bar = Progress(
+            1 + search_losses(len(etas) - 1, [len(s[2]) for s in shapes], shells),
+            "start",
+            unit="losses",
+            stream=self.stream,
+        )
+        self._best_seen = np.inf
+        from .fit import _toml
+
+        digest = start_losses.fingerprint(_toml(self.cfg), self.ds.root, self.out)
+        self._losses = start_losses.StartLosses(self.out, digest)
+        try:
+            self._search_at = "empty"
+            empty = self._loss_of(hull, idx, 1.0, 0.0)
+            if levelset:
+                best = (np.inf, 1.0, 0.0, 0.0, "visual", hull)
+                if shells:
+                    shapes.append(self._best_shell(hull, idx, etas))
+                for name, shape, sigmas, pick in shapes:
+                    # each shape's first smoothing searches index and offset jointly (a
+                    # shell: from its pick), the others near the shape's best pick
+                    near = (np.inf, pick)
+                    for sigma in shape.width * sigmas:
+                        self._search_at = f"{name}|{sigma:.9g}"
+                        trial = self._search_levelset(shape.smoothed(sigma), idx, etas, near[1])
+                        if trial[0] < near[0]:
+                            near = (trial[0], trial[1:3])
+                        if trial[0] < best[0]:
+                            best = (*trial, float(sigma), name, shape)
+                loss, eta, offset, sigma, kind, hull = best
+            else:
+                self._search_at = "visual"
+                loss, eta, offset = self._search_voxel(hull, idx, etas)
+                sigma, kind = 0.0, "visual"
+        finally:
+            self._losses.close()
+        if self._losses.reused:
+            self.stream.write(
+                f"start: {self._losses.reused} losses taken up from an earlier start "
+                f"({self._losses.path.name})\n"
+            )
+        bar, self._search_bar = self._search_bar, None
+        if bar.done < bar.total:  # candidates skipped (indices at or below 1)
+            bar.update(bar.total - bar.done, best=self._best_seen)
+        if not loss < empty:
+            loss, eta, offset, sigma, kind = empty, 1.0, 0.0, 0.0, "visual"
+        hull = hull.smoothed(sigma)
+        occ = hull.shell(offset).ravel()
+        self._set_start(hull, eta, offset)
+        self.init_info = {
+            "hull_fraction": float((occ > 0.5).mean()),
+            "mask_fraction": hull.mask_fraction,
+            "eta": eta,
+            "offset_mm": float(offset),
+            "smoothing_mm": float(sigma),
+            "hull": kind,
+            "loss": float(loss),
+            "loss_empty": float(empty),
+            "views_left_out": rejected,
+            "views_cut_by_frame": cut,
+        }
+        if rejected:
+            self.stream.write(
+                f"start: {len(rejected)} of {len(self.ds.train)} views left out of the hull "
+                "(their masks cut into what the others agree on)\n"
+            )
+        self.stream.write(
+            f"start: {kind} hull {100 * self.init_info['hull_fraction']:.2f}% of the box, "
+            f"offset {offset:+.2f} mm, smoothed {sigma:.1f} mm, filled with eta {eta:.3f} "
+            f"(loss {loss:.4g}; empty {empty:.4g})\n"
+        )
+        (self.out / "init.json").write_text(json.dumps(self.init_info, indent=2))
+
+    def _start_shapes(self, hull):
+        """(name, hull, smoothings in cells) the level-set start searches: the visual hull,
+        and where asked the hull tightened onto the faces its views roof over."""
+        shapes = [("visual", hull, np.array([0.0, 1.0, 2.0, 3.0, 4.0, 6.0]), None)]
+        if self.cfg.tighten_hull:
+            from .hull_tighten import FLOW_TIMES, tighten
+
+            masks = self._refraction_masks()
+            tight = tighten(hull, self.box, self.ds.train, masks, self.cfg.seed)
+            for time, shape in zip(FLOW_TIMES, tight):
+                shape = (f"tightened {time:g} mm^2", shape, np.array([0.0, 1.0, 2.0]), None)
+                shapes.insert(0, shape)
+        return shapes
+
+    def _best_shell(self, hull, idx, etas):
+        """The hull hollowed to the shell (SHELL_CELLS deep) whose best coarse index at
+        offset 0 has the lowest loss, as a shape to search from that pick: a bowl's or a
+        glass's hollow no silhouette shows, and the whole hull is then worse than air."""
+        best = (np.inf, "", hull, 1.0)
+        for cells in SHELL_CELLS:
+            name = f"shell {cells:g} cells"
+            self._search_at = f"{name}|0"
+            shell = hull.hollowed(cells * hull.width)
+            for e in etas[1:]:
+                loss = self._loss_of(shell, idx, float(e), 0.0)
+                if loss < best[0]:
+                    best = (loss, name, shell, float(e))
+        _, name, shell, eta = best
+        return name, shell, np.array([0.0]), (eta, 0.0)
+
+    def _loss_of(self, hull, idx, eta: float, offset: float) -> float:
+        """The loss of a candidate start, traced, or kept from an interrupted start."""
+        key = f"{self._search_at}|{eta:.9g}|{offset:.9g}"
+        loss = self._losses.get(key)
+        if loss is None:
+            self._set_start(hull, eta, offset)
+            loss = self._forward_loss(idx)
+            self._losses.put(key, loss)
+        if self._search_bar is not None:
+            self._best_seen = min(self._best_seen, loss)
+            self._search_bar.update(best=self._best_seen)
+        return loss
+
+    def _search_voxel(self, hull, idx, etas):
+        """Index, then offset with a full index search each (a visual hull is too big where
+        the views cannot see in: concavities, or a prism's rays through parallel faces),
+        then a finer index."""
+        loss, eta = min((self._loss_of(hull, idx, e, 0.0), float(e)) for e in etas[1:])
+        offset = 0.0
+        for o in hull.width / 2 * np.array(VOXEL_OFFSETS):
+            trial = min((self._loss_of(hull, idx, e, o), float(e)) for e in etas[1:])
+            if trial[0] < loss:
+                (loss, eta), offset = trial, float(o)
+        fine = eta + (etas[1] - etas[0]) * np.linspace(-0.75, 0.75, VOXEL_FINE)
+        cands = [(self._loss_of(hull, idx, e, offset), float(e)) for e in fine if e > 1]
+        loss, eta = min([(loss, eta), *cands])
+        return loss, eta, offset
+
+    def _search_levelset(self, hull, idx, etas, start=None):
+        """A joint coarse search over index and offset (a hull too big where the views cannot
+        see in, searched at offset 0, looks like a lower index), then alternating line
+        searches, coarse to fine: offset, index, offset, index. A sharp surface is worth
+        placing to a fraction of a cell. `start` = (index, offset) skips the coarse grid."""
+        step = etas[1] - etas[0]
+        if start is None:
+            offsets = hull.width * np.array(LEVELSET_OFFSETS)
+            loss, eta, offset = min(
+                (self._loss_of(hull, idx, float(e), float(o)), float(e), float(o))
+                for o in offsets
+                for e in etas[1:]
+            )
+        else:
+            eta, offset = start
+            loss = self._loss_of(hull, idx, eta, offset)
+        for de, do in LINE_ROUNDS:
+            if do:
+                cands = offset + hull.width * do * np.array(LINE_TRIES)
+                for o in cands:
+                    trial = self._loss_of(hull, idx, eta, float(o))
+                    if trial < loss:
+                        loss, offset = trial, float(o)
+            else:
+                for e in eta + step * de * np.array(LINE_TRIES):
+                    if e > 1:
+                        trial = self._loss_of(hull, idx, float(e), offset)
+                        if trial < loss:
+                            loss, eta = trial, float(e)
+        return loss, eta, offset
+
+    def _levelset_bound(self) -> bool:
+        from .fields.levelset import LevelSetField
+
+        return isinstance(self.field, LevelSetField)
+
+    def _set_start(self, hull, eta: float, offset: float) -> None:
+        """The field as the hull grown by offset mm and filled with index eta."""
+        if self._levelset_bound():
+            phi = -np.clip(hull.distance + offset, -8 * hull.width, 8 * hull.width)
+            self.params[:-1] = phi.ravel()
+            self.params[-1] = eta
+        else:
+            self.params[:] = 1.0 + (eta - 1.0) * hull.shell(offset).ravel()
+        self.field.set_data(self.params)
+        self._upload()
