@@ -201,7 +201,8 @@ def tame_rays(fit, rays: np.ndarray):
 
 def search_along(fit, kept: np.ndarray) -> dict:
     """Move phi along the kept rays' smoothed gradient by the best of line_steps (or not at
-    all); their loss before and after, and the move taken."""
+    all), then the index down its gradient by the best of index_steps (or not at all); their
+    loss before and after, and the moves taken."""
     cfg = fit.cfg
     r = _loss_and_grad(fit, kept)
     if not np.all(np.isfinite(r.grad)):
@@ -211,39 +212,30 @@ def search_along(fit, kept: np.ndarray) -> dict:
     peak = np.abs(move).max()
     best = (r.loss, 0.0)
     if peak > 0:
-        move /= peak
-        start = fit.params.copy()
-        for s in cfg.line_steps:
-            set_params(fit, start + s * move)
-            loss = fit._forward_loss(kept)
-            if loss < best[0]:
-                best = (loss, float(s))
-        set_params(fit, start + best[1] * move)
+        best = best_move(fit, kept, move / peak, cfg.line_steps, r.loss)
     row = {"loss_kept": r.loss, "step_mm": best[1], "index_move": 0.0}
     if cfg.index_steps and r.grad[-1] != 0:
-        best = index_along(fit, kept, -np.sign(r.grad[-1]), best[0])
-        row["index_move"] = best[1]
+        before = fit.params[-1]
+        along = np.zeros_like(r.grad)
+        along[-1] = -np.sign(r.grad[-1])
+        best = best_move(fit, kept, along, cfg.index_steps, best[0])
+        row["index_move"] = float(fit.params[-1] - before)  # as projected onto its bounds
     row["loss_kept_after"] = best[0]
     row["index"] = float(fit.params[-1])
     return row
 
 
-def index_along(fit, kept: np.ndarray, sign: float, loss: float) -> tuple[float, float]:
-    """Move the index by the best of index_steps in the direction `sign` (or not at all)
-    for the kept rays whose loss is `loss` now; (their loss, the move taken)."""
+def best_move(fit, kept: np.ndarray, direction: np.ndarray, steps, loss: float):
+    """Move the parameters along `direction` by the best of `steps` (or not at all) for the
+    kept rays, whose loss is `loss` now; (their loss, the step taken)."""
     start = fit.params.copy()
     best = (loss, 0.0)
-    for s in fit.cfg.index_steps:
-        trial = start.copy()
-        trial[-1] += sign * s
-        set_params(fit, trial)
-        if fit.params[-1] == start[-1]:  # at a bound of the index
-            continue
-        trial_loss = fit._forward_loss(kept)
-        if trial_loss < best[0]:
-            best = (trial_loss, float(fit.params[-1] - start[-1]))
-    start[-1] += best[1]
-    set_params(fit, start)
+    for s in steps:
+        set_params(fit, start + s * direction)
+        trial = fit._forward_loss(kept)
+        if trial < best[0]:
+            best = (trial, float(s))
+    set_params(fit, start + best[1] * direction)
     return best
 
 
