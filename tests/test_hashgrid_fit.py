@@ -46,7 +46,9 @@ def test_hash_grid_starts_from_the_hull_in_the_objects_box(sphere, tmp_path):
     import io
 
     log = io.StringIO()
-    fit = prepare_fit(sphere, tmp_path / "run", _cfg(), stream=log)
+    # a run of two steps and its resume; what steps gain is test_fit_linesearch's to show
+    cfg = _cfg(iterations=2, refit_iterations=100)
+    fit = prepare_fit(sphere, tmp_path / "run", cfg, stream=log)
     # the search's and the distillation's progress (minutes each on the quick protocol)
     lines = log.getvalue().splitlines()
     total = 1 + search_losses(8, [6, 3, 3], 3)  # the hull, two flows' shapes, three shells
@@ -71,7 +73,7 @@ def test_hash_grid_starts_from_the_hull_in_the_objects_box(sphere, tmp_path):
     field = load_field_file(tmp_path / "run" / "field.npz")
     assert isinstance(field, HashGridField)
     # a resumed run rebuilds the same field: eta_max from the run, not the scene's bound
-    again = prepare_fit(sphere, tmp_path / "run", _cfg(), resume=True)
+    again = prepare_fit(sphere, tmp_path / "run", cfg, resume=True)
     assert again.field.config == fit.field.config
     assert field.box.to_dict() == fit.box.to_dict()
 
@@ -88,10 +90,13 @@ def test_held_out_views_are_spread_and_never_trained_on(sphere, tmp_path):
     assert held_out_views(cfg, 20) == [2, 7, 12, 17]
     assert held_out_views(cfg, 9) == [4]
     assert held_out_views(cfg, 4) == []
-    fit = prepare_fit(sphere, tmp_path / "run", _cfg(field="levelset", val_views=4))
+    # the split is the field's and the start's alike: an empty voxel grid needs no search
+    fit = prepare_fit(sphere, tmp_path / "run", _cfg(field="voxel", init="empty", val_views=4))
     n = fit.ds.train[0].width * fit.ds.train[0].height
     held = {int(i) // n for i in fit._held}
     assert held == set(held_out_views(cfg, len(fit.ds.train)))
+    marked = fit._marked_pool()  # the rays a start searches and the mask share draws
+    assert len(marked) > 1000 and not set((marked // n).tolist()) & held
     from clrefract.fit import batch_indices
 
     for it in range(3):
