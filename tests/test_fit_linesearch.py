@@ -77,23 +77,24 @@ def _sphere_run(tmp_path, **overrides):
 
 def test_line_search_lowers_the_held_out_loss_from_the_hull_start(tmp_path):
     """The held-out claim at the size of a test: a glass sphere at 48 x 48 pixels, the level
-    set from its visual-hull start, six line-search steps lower the held-out views' loss
-    under 0.9 of the start's (Debian's PoCL: 0.18, the test views 34.30 -> 38.67 dB; from
-    the start of 8,192 rays, four runs that the backward pass's float atomics make differ,
-    0.55 to 0.83; Adam at its defaults 0.99). The test views are not asserted: on pip's PoCL,
-    whose start differed (37.82 dB), they once lost 0.93 while the held-out loss passed."""
+    set from its visual-hull start, four line-search steps lower the held-out views' loss
+    under 0.9 of the start's (Debian's PoCL: 0.34; six steps: 0.18, the test views 34.30
+    -> 38.67 dB; from a start of 8,192 rays, four runs that the backward pass's float atomics
+    make differ, 0.55 to 0.83; Adam at its defaults 0.99). The test views are not asserted:
+    on pip's PoCL, whose start differed (37.82 dB), they once lost 0.93 while the held-out
+    loss passed."""
     result, start, rows, _ = _sphere_run(
         tmp_path,
         field="levelset",
         res=32,
-        iterations=6,
+        iterations=4,
         optimizer="line-search",
         tighten_hull=False,  # a sphere's hull is round, and not hollow: the start picks
         shell_starts=False,  # neither shape, and they would take 60% of its losses
         batch=4096,  # the start's rays (half its time); the steps' as by default:
         line_batch=8192,
     )
-    assert len(rows) == 6 and all(0.5 < r["kept"] <= 1.0 for r in rows), rows
+    assert len(rows) == 4 and all(0.5 < r["kept"] <= 1.0 for r in rows), rows
     assert result["best_val_loss"] < 0.9 * start, (result["best_val_loss"], start)
 
 
@@ -101,7 +102,7 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path):
     """The hash grid from a perturbed start (distilled from the level set searched on the
     hull of all views but a fifth, 0.4 mm larger than the sphere) moves the level set it came
     from by the line search and is fitted to it again after each move: on a 48 x 48 sphere,
-    four steps take its held-out loss under 0.9 of the start's (with the distillation
+    three steps take its held-out loss under 0.9 of the start's (with the distillation
     defaults, 8,192 start rays and six steps, Debian's PoCL: 0.52 of it, the test views
     33.50 -> 35.04 dB).
     From the default hull, which leaves out views with holes and hugs the sphere, the start's
@@ -113,9 +114,9 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path):
         field="hashgrid",
         width=1.0,
         res=32,
-        iterations=4,
+        iterations=3,
         optimizer="line-search",
-        distil_iterations=500,
+        distil_iterations=300,
         refit_iterations=150,
         tighten_hull=False,  # a sphere's visual hull is round already
         shell_starts=False,  # and not hollow
@@ -131,7 +132,7 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path):
     from clrefract.fit import prepare_fit
 
     again = prepare_fit(tmp_path / "sphere", fit.out, load_config(None, overrides), resume=True)
-    assert again.it == 4
+    assert again.it == 3
     assert np.array_equal(again.guide.params, fit.guide.params)
     # the grid's top index follows its guide's, through the checkpoint and the best kept
     top = again.field.config.eta_max

@@ -30,7 +30,7 @@ def test_hash_grid_descent_lowers_the_held_out_loss_of_a_perturbed_lens(lens, tm
     cfg = load_config(
         None,
         dict(field="hashgrid", init="empty", eta_max=1.5, levels=4, log2_table=12, hidden=16,
-             distil_iterations=150, batch=2048, iterations=15, val_views=4,
+             distil_iterations=150, batch=2048, iterations=10, val_views=4,
              lr_table=1e-2, lr_mlp=1e-3, validate_every=0, checkpoint_every=0),
     )  # fmt: skip
     fit = Fit(lens, tmp_path / "run", cfg, stream=io.StringIO())
