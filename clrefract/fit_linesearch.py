@@ -232,6 +232,8 @@ def best_move(fit, kept: np.ndarray, direction: np.ndarray, steps, loss: float):
     best = (loss, 0.0)
     for s in steps:
         set_params(fit, start + s * direction)
+        if np.array_equal(fit.params, start):  # held at its bounds: nothing to trace
+            continue
         trial = fit._forward_loss(kept)
         if trial < best[0]:
             best = (trial, float(s))
