@@ -1,0 +1,98 @@
+"""Does a hollow object's start want its lid off? The hull's shells, closed and opened.
+
+    python tools/diag_open_shell.py [--scene bowl] [--data bench_results/data]
+        [--etas 1.3,1.35,1.4,1.45,1.5] [--json bench_results/diag_open_shell.json]
+
+No silhouette shows a bowl's hollow, so the start's shell of the visual hull keeps a lid
+over the opening. On a family solid's quick-protocol dataset (128 x 128, 100 views; made in
+DATA if missing) and the level-set start's 64^3 grid of the object's box, this prints the
+start search's loss (its fixed batch of mask rays) at each index for: the whole hull; its
+shells 2, 4 and 6 cells deep (`Hull.hollowed`, what the start tries); and each shell opened
+towards each of the six box faces (the hollow carried through to that face, removing the
+part of the shell beyond it). Beside them: the empty box, and the truth on the same grid.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+SHELL_CELLS = (2, 4, 6)
+
+
+def opened(hull, depth: float, axis: int, sign: int):
+    """The hull's shell `depth` mm deep with its hollow carried through to the box face at
+    `sign` along `axis` (a running maximum of the hollow's signed distance)."""
+    from clrefract.hull import Hull
+
+    hollow = hull.distance - depth
+    if sign < 0:
+        hollow = np.flip(hollow, axis)
+    hollow = np.maximum.accumulate(hollow, axis=axis)
+    if sign < 0:
+        hollow = np.flip(hollow, axis)
+    return Hull(np.minimum(hull.distance, -hollow), hull.width, hull.mask_fraction, hull.rejected)
+
+
+def main() -> None:
+    from diag_shape_gradient import quick_dataset, set_params, true_levelset
+
+    from clrefract.fit import Fit, load_config, resolution_at
+    from clrefract.report import scene_truth
+
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--scene", default="bowl")
+    ap.add_argument("--data", default="bench_results/data")
+    ap.add_argument("--etas", default="1.3,1.35,1.4,1.45,1.5")
+    ap.add_argument("--json", default="bench_results/diag_open_shell.json")
+    args = ap.parse_args()
+    etas = [float(e) for e in args.etas.split(",")]
+    t0 = time.perf_counter()
+    root = quick_dataset(args.scene, args.data)
+    cfg = load_config(None, dict(field="levelset", res=64, res_schedule=(), batch=8192))
+    run = root / "diag_open_shell_run"
+    run.mkdir(exist_ok=True)
+    fit = Fit(root, run, cfg, stream=io.StringIO())
+    fit.box = fit._object_box()  # the start's own box and grid, without its search
+    fit._size_from_images()
+    fit._bind(fit._make_field(resolution_at(cfg, 0)))
+    hull = fit._hull(64)
+    idx = fit._mask_batch(7)
+
+    def loss(shape, eta: float) -> float:
+        fit._set_start(shape, eta, 0.0)
+        return fit._forward_loss(idx)
+
+    shapes = {"hull": hull}
+    for cells in SHELL_CELLS:
+        shapes[f"shell {cells}"] = hull.hollowed(cells * hull.width)
+        for axis in range(3):
+            for sign in (1, -1):
+                name = f"shell {cells} open {'+-'[sign < 0]}{'xyz'[axis]}"
+                shapes[name] = opened(hull, cells * hull.width, axis, sign)
+    out = {"scene": args.scene, "etas": etas, "empty": loss(hull, 1.0), "losses": {}}
+    print(f"{'shape':18s}" + "".join(f"{e:>9.3f}" for e in etas) + "      min")
+    for name, shape in shapes.items():
+        row = [loss(shape, e) for e in etas]
+        out["losses"][name] = row
+        print(f"{name:18s}" + "".join(f"{v:9.5f}" for v in row) + f"{min(row):9.5f}")
+    truth = scene_truth(fit.ds)
+    set_params(fit, true_levelset(fit, truth), truth.eta)
+    out["truth"] = fit._forward_loss(idx)
+    out["seconds"] = time.perf_counter() - t0
+    print(
+        f"empty box {out['empty']:.5f}; truth on the grid (eta {truth.eta:g}) "
+        f"{out['truth']:.5f}; {out['seconds']:.0f} s"
+    )
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(out, indent=1))
+    print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
