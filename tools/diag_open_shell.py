@@ -8,8 +8,10 @@ over the opening. On a family solid's quick-protocol dataset (128 x 128, 100 vie
 DATA if missing) and the level-set start's 64^3 grid of the object's box, this prints the
 start search's loss (its fixed batch of mask rays) at each index for: the whole hull; its
 shells 2, 4 and 6 cells deep (`Hull.hollowed`, what the start tries); and each shell opened
-towards each of the six box faces (the hollow carried through to that face, removing the
-part of the shell beyond it). Beside them: the empty box, and the truth on the same grid.
+along each of 26 directions (to a cube's faces, edges and corners: the hollow carried out
+of the box that way, removing the shell beyond it), and on the bowl along its true opening.
+Beside them: the empty box, the truth on the same grid, and the truth with the closed
+shell's lid added.
 """
 
 from __future__ import annotations
@@ -25,18 +27,36 @@ import numpy as np
 SHELL_CELLS = (2, 4, 6)
 
 
-def opened(hull, depth: float, axis: int, sign: int):
-    """The hull's shell `depth` mm deep with its hollow carried through to the box face at
-    `sign` along `axis` (a running maximum of the hollow's signed distance)."""
+def opened(hull, depth: float, direction, spacing) -> object:
+    """The hull's shell `depth` mm deep with its hollow carried out of the box along
+    `direction` (world axes; `spacing`: the grid's mm per node on each axis): a node is
+    hollow where any node behind it along the direction is inside the hollow (a running
+    maximum of the hollow's signed distance, sampled every half node)."""
+    from scipy import ndimage
+
     from clrefract.hull import Hull
 
     hollow = hull.distance - depth
-    if sign < 0:
-        hollow = np.flip(hollow, axis)
-    hollow = np.maximum.accumulate(hollow, axis=axis)
-    if sign < 0:
-        hollow = np.flip(hollow, axis)
-    return Hull(np.minimum(hull.distance, -hollow), hull.width, hull.mask_fraction, hull.rejected)
+    u = np.asarray(direction, float) / np.asarray(spacing, float)
+    u /= np.linalg.norm(u)
+    n = max(hollow.shape)
+    out = hollow.copy()
+    for s in np.arange(0.5, 2 * n, 0.5):
+        moved = ndimage.shift(hollow, s * u, order=1, mode="constant", cval=-np.inf)
+        if not np.isfinite(moved).any():
+            break
+        np.maximum(out, moved, out=out)
+    return Hull(np.minimum(hull.distance, -out), hull.width, hull.mask_fraction, hull.rejected)
+
+
+def directions() -> dict:
+    """The 26 directions to a cube's faces, edges and corners."""
+    out = {}
+    for d in np.ndindex(3, 3, 3):
+        v = np.array(d) - 1
+        if v.any():
+            out["".join("-0+"[c + 1] for c in v)] = v / np.linalg.norm(v)
+    return out
 
 
 def main() -> None:
@@ -68,27 +88,44 @@ def main() -> None:
         fit._set_start(shape, eta, 0.0)
         return fit._forward_loss(idx)
 
+    dirs = directions()
+    spacing = fit.box.size / (np.asarray(hull.distance.shape) - 1)
+    truth = scene_truth(fit.ds)
+    if getattr(truth, "kind", "") == "bowl":  # its opening: local +z turned by the tilt
+        from clrefract.fields.analytic import rotation_xyz
+
+        dirs["truth's opening"] = rotation_xyz(truth.tilt)[:, 2]
     shapes = {"hull": hull}
     for cells in SHELL_CELLS:
         shapes[f"shell {cells}"] = hull.hollowed(cells * hull.width)
-        for axis in range(3):
-            for sign in (1, -1):
-                name = f"shell {cells} open {'+-'[sign < 0]}{'xyz'[axis]}"
-                shapes[name] = opened(hull, cells * hull.width, axis, sign)
+        for tag, u in dirs.items():
+            shapes[f"shell {cells} open {tag}"] = opened(hull, cells * hull.width, u, spacing)
     out = {"scene": args.scene, "etas": etas, "empty": loss(hull, 1.0), "losses": {}}
     print(f"{'shape':18s}" + "".join(f"{e:>9.3f}" for e in etas) + "      min")
     for name, shape in shapes.items():
         row = [loss(shape, e) for e in etas]
         out["losses"][name] = row
         print(f"{name:18s}" + "".join(f"{v:9.5f}" for v in row) + f"{min(row):9.5f}")
-    truth = scene_truth(fit.ds)
-    set_params(fit, true_levelset(fit, truth), truth.eta)
+    phi = true_levelset(fit, truth).reshape(hull.distance.shape)
+    set_params(fit, phi.ravel(), truth.eta)
     out["truth"] = fit._forward_loss(idx)
+    out["truth with lid"] = {}
+    for cells in SHELL_CELLS:  # the lid: the closed shell less the best-opened one
+        name = min(
+            (k for k in out["losses"] if k.startswith(f"shell {cells} open")),
+            key=lambda k: min(out["losses"][k]),
+        )
+        lid = np.minimum(shapes[f"shell {cells}"].distance, -shapes[name].distance)
+        band = 8 * hull.width
+        set_params(fit, np.clip(np.minimum(phi, -lid), -band, band).ravel(), truth.eta)
+        out["truth with lid"][f"shell {cells}, {name}"] = fit._forward_loss(idx)
     out["seconds"] = time.perf_counter() - t0
     print(
         f"empty box {out['empty']:.5f}; truth on the grid (eta {truth.eta:g}) "
         f"{out['truth']:.5f}; {out['seconds']:.0f} s"
     )
+    for name, v in out["truth with lid"].items():
+        print(f"the truth with the lid of {name} added: {v:.5f}")
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(out, indent=1))
     print(f"wrote {args.json}")
