@@ -17,7 +17,6 @@ shell's lid added.
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import time
 from pathlib import Path
@@ -60,9 +59,9 @@ def directions() -> dict:
 
 
 def main() -> None:
-    from diag_shape_gradient import quick_dataset, set_params, true_levelset
+    from diag_shape_gradient import levelset_fit, set_params, true_levelset
 
-    from clrefract.fit import Fit, load_config, resolution_at
+    from clrefract.fit import resolution_at
     from clrefract.report import scene_truth
 
     ap = argparse.ArgumentParser(description=__doc__)
@@ -73,14 +72,10 @@ def main() -> None:
     args = ap.parse_args()
     etas = [float(e) for e in args.etas.split(",")]
     t0 = time.perf_counter()
-    root = quick_dataset(args.scene, args.data)
-    cfg = load_config(None, dict(field="levelset", res=64, res_schedule=(), batch=8192))
-    run = root / "diag_open_shell_run"
-    run.mkdir(exist_ok=True)
-    fit = Fit(root, run, cfg, stream=io.StringIO())
+    fit = levelset_fit(args.scene, args.data, "diag_open_shell_run")
     fit.box = fit._object_box()  # the start's own box and grid, without its search
     fit._size_from_images()
-    fit._bind(fit._make_field(resolution_at(cfg, 0)))
+    fit._bind(fit._make_field(resolution_at(fit.cfg, 0)))
     hull = fit._hull(64)
     idx = fit._mask_batch(7)
 

@@ -257,6 +257,19 @@ def quick_dataset(scene: str, data: str) -> Path:
     return root
 
 
+def levelset_fit(scene: str, data: str, run: str):
+    """An unstarted `Fit` of a 64^3 level set on the scene's quick-protocol dataset, its run
+    folder `run` inside the dataset (the start diagnostics' setting)."""
+    import io
+
+    from clrefract.fit import Fit, load_config
+
+    root = quick_dataset(scene, data)
+    cfg = load_config(None, dict(field="levelset", res=64, res_schedule=(), batch=8192))
+    (root / run).mkdir(exist_ok=True)
+    return Fit(root, root / run, cfg, stream=io.StringIO())
+
+
 def true_levelset(fit, truth) -> np.ndarray:
     """The truth's level-set values on the fit's grid and interface width."""
     from clrefract.fields.levelset import LevelSetField

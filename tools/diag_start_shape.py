@@ -24,7 +24,6 @@ level set. It prints:
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import time
 from pathlib import Path
@@ -63,9 +62,8 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def main() -> None:
-    from diag_shape_gradient import quick_dataset, set_params, true_levelset
+    from diag_shape_gradient import levelset_fit, set_params, true_levelset
 
-    from clrefract.fit import Fit, load_config
     from clrefract.report import scene_truth
 
     ap = argparse.ArgumentParser(description=__doc__)
@@ -78,11 +76,8 @@ def main() -> None:
     ap.add_argument("--json", default="bench_results/diag_start_shape.json")
     args = ap.parse_args()
     t0 = time.perf_counter()
-    root = quick_dataset(args.scene, args.data)
-    cfg = load_config(None, dict(field="levelset", res=64, res_schedule=(), batch=8192))
-    run = root / "diag_start_run"
-    run.mkdir(exist_ok=True)
-    fit = Fit(root, run, cfg, stream=io.StringIO())
+    fit = levelset_fit(args.scene, args.data, "diag_start_run")
+    cfg = fit.cfg
     fit.start()
     truth = scene_truth(fit.ds)
     hull = fit._hull(64)
