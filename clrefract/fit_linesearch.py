@@ -169,6 +169,7 @@ def refit(fit) -> float:
         fit.cfg.refit_iterations,
         fit.cfg.seed + fit.it + 1,
         rate=REFIT_RATE,
+        device=fit.distil_device(),
     )
     set_params(fit, fit.field.data())
     return rms

@@ -87,7 +87,7 @@ def traced_loss(env, status, velocity, targets, weights=None, space="srgb", grou
     )
 
 
-def _adjoint_group(items: int, lanes: int) -> int | None:
+def backward_group_size(items: int, lanes: int) -> int | None:
     """Work-group size of the backward pass. On CPUs (lanes > 1) PoCL runs a work-group as
     a loop over its work-items, each with its own copy of the private accumulators (4 KB for
     a B-spline's 64 taps) on one thread's stack: the driver's choice of hundreds of
@@ -316,7 +316,7 @@ class GradientEngine:
             if self.adjoint == "discrete":
                 args.append(self._scratch_buffer(q, size))
             args += [Out(back[3]), tr.dtype(self.growth_max), Out(back[4]), *tr._skip_args]
-            tr._enqueue(self._k_adjoint, items, args, q, local=_adjoint_group(items, tr.lanes))
+            tr._enqueue(self._k_adjoint, items, args, q, local=backward_group_size(items, tr.lanes))
             jobs.append((idx, grad, partial, back, items))
         total = np.zeros(n_par)
         back_pos = np.empty((n, 3))

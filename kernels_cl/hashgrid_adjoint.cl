@@ -277,9 +277,13 @@ HG_INLINE void hg_softplus_reverse(const realv *S, const realv *Q, realv *ab, re
 #define HG_ADJ_FN inline
 #endif
 
-HG_ADJ_FN realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, realv my,
-                              realv mz, realv w, realv *gx, realv *gy, realv *gz, realv *hx,
-                              realv *hy, realv *hz, __global REAL *grad FIELD_ACC_PARAM) {
+/* The splat at one point. With `given` the output's adjoints ob and omb are the caller's
+ * (ob_in, omb_in: a least-squares fit's residuals, hashgrid_distil.cl) instead of the
+ * adjoint's formula; w and the window then play no part. */
+HG_ADJ_FN realv hg_point_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, realv my,
+                                 realv mz, realv w, const int given, realv ob_in, realv omb_in,
+                                 realv *gx, realv *gy, realv *gz, realv *hx, realv *hy,
+                                 realv *hz, __global REAL *grad FIELD_ACC_PARAM) {
     /* features: value, gradient, Hess mu; after the first layer the same arrays hold the
      * features' mu-tangents (fgx) and, in the reverse pass, their adjoints (fhx, fhy) */
     realv f[HG_NF], fgx[HG_NF], fgy[HG_NF], fgz[HG_NF], fhx[HG_NF], fhy[HG_NF], fhz[HG_NF];
@@ -340,8 +344,11 @@ HG_ADJ_FN realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx,
 
     /* reverse pass into the parameters */
     realv me = mx * ex + my * ey + mz * ez;
-    realv ob = w * (me * Wn * G1 + eta * (mW * G1 + Wn * G2 * om));
-    realv omb = w * eta * Wn * G1;
+    realv ob = ob_in, omb = omb_in;
+    if (!given) {
+        ob = w * (me * Wn * G1 + eta * (mW * G1 + Wn * G2 * om));
+        omb = w * eta * Wn * G1;
+    }
     if (!ANY(ob != RV(0) || omb != RV(0)))
         return eta;
     /* output unit: d wo_j = ob a_j + omb a_mu,j; then the last hidden layer's adjoints
@@ -370,4 +377,11 @@ HG_ADJ_FN realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx,
     hg_encode2_reverse(FIELD_ARGS, grad, x, y, z, mx, my, mz, fhx, fhy);
     return eta;
 #undef HG_LAST
+}
+
+inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, realv my,
+                           realv mz, realv w, realv *gx, realv *gy, realv *gz, realv *hx,
+                           realv *hy, realv *hz, __global REAL *grad FIELD_ACC_PARAM) {
+    return hg_point_adjoint(FIELD_ARGS, x, y, z, mx, my, mz, w, 0, RV(0), RV(0), gx, gy, gz,
+                            hx, hy, hz, grad FIELD_ACC_ARG);
 }

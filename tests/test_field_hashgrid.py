@@ -469,7 +469,7 @@ def test_a_distillation_cut_into_threads_takes_the_steps_of_the_whole_batch(monk
     gradients add up to the batch's: three uneven pieces give one piece's parameters to
     rounding (a piece lost or counted twice moves them by a third of a step). The threads
     are CLREFRACT_HOST_THREADS where set (MPI ranks sharing a machine set it)."""
-    import clrefract.fields.hashgrid as hashgrid
+    import clrefract.fields.hashgrid_passes as passes
 
     pts = inner_points(3000)
     r = np.linalg.norm(pts - pts.mean(0), axis=1)
@@ -477,7 +477,7 @@ def test_a_distillation_cut_into_threads_takes_the_steps_of_the_whole_batch(monk
     params = {}
     for cores in (1, 3):
         monkeypatch.setenv("CLREFRACT_HOST_THREADS", str(cores))
-        monkeypatch.setattr(hashgrid, "DISTIL_PIECE_MIN", 100)
+        monkeypatch.setattr(passes, "DISTIL_PIECE_MIN", 100)
         f = HashGridField(HashGridConfig(**SMALL), BOX, seed=0)
         f.fit_values(pts, eta, iterations=20, batch=700)
         params[cores] = f.data()

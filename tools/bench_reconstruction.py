@@ -95,7 +95,9 @@ def bench_scene(scene: str, args) -> dict:
         top = cfg.hashgrid_eta_max(truth.eta)  # the truth's index, not the start's
         hc = replace(fit.field.config, eta_max=top)
         ceiling = fit.field.__class__(hc, fit.box, seed=cfg.seed)
-        fit_to_field(ceiling, truth, cfg.width, cfg.distil_iterations, cfg.seed)
+        fit_to_field(
+            ceiling, truth, cfg.width, cfg.distil_iterations, cfg.seed, device=fit.distil_device()
+        )
     else:
         ceiling = VoxelGrid.from_field(
             truth, fit.box, args.grid, interp=cfg.interp, eta_max=fit.eta_max

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import json
 import math
-from contextlib import nullcontext
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -47,14 +46,12 @@ import numpy as np
 
 from ..errors import ClrefractError
 from ..imageio import atomic_path
-from ..limits import host_threads
 from .base import Box, Field, _smoother, _smoother_d, _smoother_dd, box_window
 
 INTERPS = ("smoothstep", "trilinear")
 OUTPUTS = ("sigmoid", "ramp")
 PRIMES = (1, 2654435761, 805459861)  # spatial-hash multipliers of x, y, z (instant-ngp)
 _CHUNK = 1 << 15  # points per block in the NumPy reference (bounds temporary memory)
-DISTIL_PIECE_MIN = 1024  # points per thread of a distillation batch, at least
 
 
 # fit_surface: the output's slope across the surface, per interface width (a 10-90% ramp of
@@ -663,51 +660,54 @@ class HashGridField(Field):
         return eta, ge, hm, self._reverse2(ob, omb, mu, tape, p)
 
     def _distil(
-        self, pts, residual, iterations: int, batch: int, seed: int, lr=(3e-2, 3e-3), progress=None
+        self,
+        pts,
+        residual,
+        iterations: int,
+        batch: int,
+        seed: int,
+        lr=(3e-2, 3e-3),
+        progress=None,
+        device=None,
     ) -> None:
         """Adam on a least-squares fit over n points: residual(i, o, grad o) gives, for the
         points i of a batch, d loss / d o and d loss / d grad o. `progress`: a bar
-        (clrefract.progress) told of each iteration. A batch's forward and reverse passes
-        are cut into pieces run on threads (NumPy releases the GIL in its array work), one
-        per core, with BLAS held to one thread each: its own threads on top of them made
-        the distillation slower than one piece (README, Fitting)."""
-        from concurrent.futures import ThreadPoolExecutor
-
-        from threadpoolctl import threadpool_limits
-
+        (clrefract.progress) told of each iteration. `device`: (runtime, precision) runs
+        the passes as OpenCL kernels there, else they run in NumPy on the host's cores
+        (clrefract/fields/hashgrid_passes.py)."""
         from ..adam import Adam
+        from .hashgrid_passes import DevicePasses, HostPasses
 
         rng = np.random.default_rng(seed)
         p = self.params_vec.copy()
         adam = Adam(len(p), self.param_groups(lr_table=lr[0], lr_mlp=lr[1]))
         size = min(batch, len(pts))
-        pieces = max(1, min(host_threads(), size // DISTIL_PIECE_MIN))
-        blas = threadpool_limits(1, user_api="blas") if pieces > 1 else nullcontext()
-        with ThreadPoolExecutor(pieces) as pool, blas:
+        passes = DevicePasses(self, *device) if device else HostPasses(self, size)
+        with passes:
             for it in range(iterations):
                 i = rng.integers(0, len(pts), size=size)
-                xs = [pts[j] for j in np.array_split(i, pieces)]
-                fw = list(pool.map(lambda x: self._forward2(x, None, p, False), xs))
-                o = np.concatenate([f[0] for f in fw])
-                ob, omb, mu = residual(i, o, np.concatenate([f[1] for f in fw]))
-                # the same cuts as the points': array_split cuts equal lengths alike
-                cut = [np.array_split(x, pieces) for x in (ob, omb, mu)]
-                tapes = [f[3] for f in fw]
-                grad = sum(pool.map(lambda *a: self._reverse2(*a, p), *cut, tapes))
+                o, og = passes.forward(p, pts[i])
+                grad = passes.reverse(*residual(i, o, og))
                 adam.step(p, grad, lr_scale=0.1 ** (it / iterations))
                 if progress is not None:
                     progress.update()
         self.set_data(p)
 
-    def eta_rms(self, pts: np.ndarray, eta: np.ndarray) -> float:
-        """RMS error of eta against values at points."""
-        err = np.concatenate(
-            [
-                self.eval(pts[a : a + _CHUNK])[0] - eta[a : a + _CHUNK]
-                for a in range(0, len(pts), _CHUNK)
-            ]
-        )
-        return float(np.sqrt(np.mean(err**2)))
+    def eta_rms(self, pts: np.ndarray, eta: np.ndarray, device=None) -> float:
+        """RMS error of eta against values at points; `device` as _distil's (NumPy takes
+        4 s for the 400,000 points of a refit)."""
+        if device is None:
+            fit = [self.eval(pts[a : a + _CHUNK])[0] for a in range(0, len(pts), _CHUNK)]
+        else:
+            from .hashgrid_passes import DevicePasses
+
+            with DevicePasses(self, *device) as passes:
+                o = [
+                    passes.forward(self.params_vec, pts[a : a + _CHUNK])[0]
+                    for a in range(0, len(pts), _CHUNK)
+                ]
+            fit = [1.0 + box_window(self.box, pts)[0] * self._output(np.concatenate(o))[0]]
+        return float(np.sqrt(np.mean((np.concatenate(fit) - eta) ** 2)))
 
     def fit_values(
         self,
@@ -719,6 +719,7 @@ class HashGridField(Field):
         batch: int = 8192,
         seed: int = 0,
         progress=None,
+        device=None,
     ) -> float:
         """Fit the field to eta values at points, and to their gradient (scaled by `scale`
         mm: refraction follows the normals, which values alone leave rough), by least
@@ -743,8 +744,8 @@ class HashGridField(Field):
                 omb = w * g1
             return ob, omb, mu
 
-        self._distil(pts, residual, iterations, batch, seed, progress=progress)
-        return self.eta_rms(pts, eta)
+        self._distil(pts, residual, iterations, batch, seed, progress=progress, device=device)
+        return self.eta_rms(pts, eta, device)
 
     def fit_surface(
         self,
@@ -758,6 +759,7 @@ class HashGridField(Field):
         seed: int = 0,
         rate: float = 1.0,
         progress=None,
+        device=None,
     ) -> None:
         """Fit the field to a solid of index `eta` bounded by the zero set of a signed
         distance phi (mm, negative inside; its gradient grad_phi) with an interface of
@@ -768,12 +770,14 @@ class HashGridField(Field):
         ramp is far easier for the grid than eta's own sharp step: on the quick protocol's
         sphere the normals come out 0.3 deg off at the median instead of 1.4 (README).
         With the ramp output, o is fitted to -2 phi / width instead (`_fit_ramp`). `rate`
-        scales the Adam rates."""
+        scales the Adam rates; `device` as _distil's."""
         pts = np.asarray(pts, np.float64).reshape(-1, 3)
         phi = np.asarray(phi, np.float64).reshape(-1)
         if self.config.output == "ramp":
             lr = (RAMP_LR[0] * rate, RAMP_LR[1] * rate)
-            self._fit_ramp(pts, phi, grad_phi, eta, width, iterations, batch, seed, lr, progress)
+            self._fit_ramp(
+                pts, phi, grad_phi, eta, width, iterations, batch, seed, lr, progress, device
+            )
             return
         # the interior's output: eta there is the index (as saturated as the far side if the
         # index is at eta_max; unused when there is no interior)
@@ -799,10 +803,10 @@ class HashGridField(Field):
             return 2.0 / n * r, np.ones(n), mu
 
         lr = (SURFACE_LR[0] * rate, SURFACE_LR[1] * rate)
-        self._distil(pts, residual, iterations, batch, seed, lr, progress)
+        self._distil(pts, residual, iterations, batch, seed, lr, progress, device)
 
     def _fit_ramp(
-        self, pts, phi, grad_phi, eta, width, iterations, batch, seed, lr, progress=None
+        self, pts, phi, grad_phi, eta, width, iterations, batch, seed, lr, progress, device
     ) -> None:
         """fit_surface for the ramp output: o = -2 phi / width, so that eta follows the
         level set's ramp S(1/2 - phi / width) exactly, up to o_in inside (eta there is the
@@ -827,7 +831,7 @@ class HashGridField(Field):
             mu[~ramp[i]] = 0.0
             return 2.0 / n * r, np.ones(n), mu
 
-        self._distil(pts, residual, iterations, batch, seed, lr, progress)
+        self._distil(pts, residual, iterations, batch, seed, lr, progress, device)
 
     def regularizer(self, params: np.ndarray) -> tuple[float, np.ndarray]:
         """Mean over fixed points where the window is 1 of (cell * d eta / dx_a)^2 over the axes,
