@@ -156,7 +156,9 @@ class FitConfig:
     # empty-space skipping in the forward and backward passes: rays fly straight through
     # cells where eta cannot vary before the occupancy (occupancy_res^3 over the box) is
     # rebuilt from the parameters, every occupancy_every iterations (fit_occupancy.py: a
-    # level set's band plus its drift, a voxel grid's free nodes; not for hash grids)
+    # level set's band plus its drift, a voxel grid's free nodes). A hash grid's own rays
+    # cannot skip; from the hull with the line search, the level set it follows (its start
+    # search and its steps) does
     skip_empty: bool = False
     occupancy_every: int = 25
     occupancy_res: int = 32
@@ -206,6 +208,12 @@ class FitConfig:
         """A hash grid's eta_max for glass of this index (index_headroom, sigmoid only)."""
         room = self.index_headroom if self.hashgrid_output == "sigmoid" else 0.0
         return 1 + (index - 1) * (1 + room)
+
+    def skipping_field(self) -> str:
+        """The kind of field whose rays skip empty space with skip_empty: a hash grid from
+        the hull with the line search traces its level set (start search and steps)."""
+        guided = self.init == "hull" and self.optimizer == "line-search"
+        return "levelset" if self.field == "hashgrid" and guided else self.field
 
     def validate(self) -> None:
         if self.box:
@@ -274,7 +282,9 @@ class FitConfig:
         if self.skip_empty:
             from .fit_occupancy import TrainingOccupancy
 
-            TrainingOccupancy(self.field, self.occupancy_res, self.occupancy_every, self.lr_phi)
+            TrainingOccupancy(
+                self.skipping_field(), self.occupancy_res, self.occupancy_every, self.lr_phi
+            )
             if self.adjoint == "discrete":
                 raise ClrefractError(
                     "skip_empty needs adjoint = 'continuous': the discrete adjoint replays "
@@ -578,7 +588,7 @@ class Fit(HullStart):
             from .fit_occupancy import TrainingOccupancy
 
             self._occ = TrainingOccupancy(
-                cfg.field, cfg.occupancy_res, cfg.occupancy_every, cfg.lr_phi
+                cfg.skipping_field(), cfg.occupancy_res, cfg.occupancy_every, cfg.lr_phi
             )
 
     # --- field and optimiser -------------------------------------------------------------
@@ -627,7 +637,7 @@ class Fit(HullStart):
             checkpoint_every=self.cfg.backward_checkpoints,
             growth_max=self.cfg.adjoint_growth_max,
             adjoint=self.cfg.adjoint,
-            skip_empty=self.cfg.skip_empty,
+            skip_empty=self.cfg.skip_empty and field.kind == self.cfg.skipping_field(),
             occupancy_res=self.cfg.occupancy_res,
         )
         return shard(engine, self.cfg.chunks)  # split over MPI ranks, if any
