@@ -605,7 +605,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         default=None,
         help="rays fly straight through cells where eta cannot vary, forward and backward "
-        "(level set, voxel; same gradient, less time where the object is small)",
+        "(level set, voxel, and a hash grid's level set from the hull; same gradient, "
+        "less time where the object is small)",
     )
     p.add_argument(
         "--occupancy-every",
