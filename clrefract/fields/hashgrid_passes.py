@@ -81,9 +81,9 @@ class DevicePasses:
         self._fp = cl.Buffer(
             ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self._real(np.append(field.params(), 0))
         )
-        itemsize = np.dtype(self.dtype).itemsize
-        self._fd = cl.Buffer(ctx, mf.READ_ONLY, (self.n_params + 1) * itemsize)
-        self._grad = cl.Buffer(ctx, mf.READ_WRITE, self.n_params * itemsize)
+        self._fd = cl.Buffer(ctx, mf.READ_ONLY, (self.n_params + 1) * self._itemsize)
+        # the kernel adds only table entries there (the MLP's gradient goes to `partial`)
+        self._grad = cl.Buffer(ctx, mf.READ_WRITE, self.n_tables * self._itemsize)
         self._bufs = {}
 
     def __enter__(self):
@@ -99,7 +99,7 @@ class DevicePasses:
         """A device buffer of n reals, kept from batch to batch."""
         cl = self.runtime.cl
         buf = self._bufs.get(name)
-        nbytes = max(n, 1) * np.dtype(self.dtype).itemsize
+        nbytes = max(n, 1) * self._itemsize
         if buf is None or buf.size < nbytes:
             buf = cl.Buffer(self.runtime.context, cl.mem_flags.READ_WRITE, nbytes)
             self._bufs[name] = buf
