@@ -322,8 +322,9 @@ def _cmd_fit(args) -> int:
 
 def _check_resume_flags(run: Path, overrides: dict, config: str | None) -> None:
     """--resume continues a run with its own settings: a flag that asks for different ones
-    (another field kind, say) is refused rather than silently ignored."""
-    from .fit import load_config
+    (another field kind, say) is refused rather than silently ignored. --iterations may
+    lengthen a line-search run (extend_run)."""
+    from .fit import extend_run, load_config
 
     if config:
         raise ClrefractError("--resume takes the run's own config.toml; drop --config")
@@ -333,12 +334,17 @@ def _check_resume_flags(run: Path, overrides: dict, config: str | None) -> None:
     clash = [
         f"--{k.replace('_', '-')} {v} (the run has {getattr(saved, k)})"
         for k, v in overrides.items()
-        if v is not None and k != "device" and k in vars(saved) and v != getattr(saved, k)
+        if v is not None
+        and k not in ("device", "iterations")
+        and k in vars(saved)
+        and v != getattr(saved, k)
     ]
     if clash:
         raise ClrefractError(
             f"{run}: --resume cannot change the run's settings: {'; '.join(clash)}"
         )
+    if overrides.get("iterations") is not None:
+        extend_run(run, overrides["iterations"])
 
 
 def _cmd_eval(args) -> int:
@@ -602,11 +608,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--skip-empty",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
         default=None,
         help="rays fly straight through cells where eta cannot vary, forward and backward "
-        "(level set, voxel, and a hash grid's level set from the hull; same gradient, "
-        "less time where the object is small)",
+        "(level set, voxel, and a hash grid's level set from the hull, where it is on by "
+        "default; same gradient, less time where the object is small)",
     )
     p.add_argument(
         "--occupancy-every",

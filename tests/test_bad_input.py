@@ -170,6 +170,11 @@ def test_resume_with_another_field_kind(ds, voxel_run, capsys):
     refused(capsys, args, "--field hashgrid", "voxel")
 
 
+def test_resume_cannot_lengthen_an_adam_run(ds, voxel_run, capsys):
+    args = ["fit", ds, "--out", voxel_run, "--resume", "--iterations", "5"]
+    refused(capsys, args, "rates decay over its 2 iterations")
+
+
 def test_resume_from_a_truncated_checkpoint(ds, voxel_run, tmp_path, capsys):
     run = tmp_path / "run"
     shutil.copytree(voxel_run, run)

@@ -147,6 +147,29 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path):
     assert np.allclose(resumed.direction, with_guide.direction, atol=1e-6)
 
 
+def test_resume_adds_steps_to_a_finished_line_search(tmp_path, capsys):
+    """`--resume --iterations N` lengthens a line-search run (its steps have no schedule
+    that depends on their count); it cannot shorten one."""
+    from clrefract.cli import main
+    from clrefract.synth import MakeOptions, make_dataset
+
+    data, run = tmp_path / "sphere", tmp_path / "run"
+    make_dataset("sphere", data, MakeOptions(views=8, res=24, env_width=256, volume_res=8))
+    toml = tmp_path / "fit.toml"
+    toml.write_text("tighten_hull = false\nshell_starts = false\n")
+    fit = ["fit", str(data), "--out", str(run), "--field", "levelset", "--res", "16"]
+    line = ["--optimizer", "line-search", "--batch", "1024", "--test-views", "1"]
+    assert main([*fit, *line, "--iterations", "1", "--config", str(toml)]) == 0
+    assert main([*fit, "--resume", "--iterations", "2"]) == 0
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").open()]
+    assert [r["iteration"] for r in rows] == [1, 2]
+    assert load_config(run / "config.toml", {}).iterations == 2
+    capsys.readouterr()
+    assert main([*fit, "--resume", "--iterations", "1"]) == 2
+    assert "can only add steps" in capsys.readouterr().err
+    assert load_config(run / "config.toml", {}).iterations == 2
+
+
 @pytest.mark.parametrize("bad", [("a",), (0.01, 0.0), (float("inf"),)])
 def test_index_steps_must_be_positive_moves(bad):
     with pytest.raises(ClrefractError, match="index_steps must be positive"):

@@ -168,6 +168,22 @@ def test_hash_grids_skip_only_on_the_level_set_they_follow():
         load_config(None, dict(field="levelset", skip_empty=True, adjoint="discrete"))
 
 
+def test_a_hash_grid_from_the_hull_skips_by_default_where_it_can():
+    """On by default only where the level set a hash grid follows traces the rays; a user's
+    own setting wins, and settings that cannot skip are not refused for a default."""
+    assert load_config(None, dict(field="hashgrid")).skip_empty is True
+    assert load_config(None, dict(field="hashgrid", skip_empty=False)).skip_empty is False
+    for other in (
+        dict(field="hashgrid", init="empty"),
+        dict(field="hashgrid", optimizer="adam"),
+        dict(field="hashgrid", adjoint="discrete"),
+        dict(field="levelset"),
+        dict(field="levelset", optimizer="line-search"),
+        dict(field="voxel"),
+    ):
+        assert load_config(None, other).skip_empty is False, other
+
+
 @pytest.fixture(scope="module")
 def sphere_data(tmp_path_factory):
     data = tmp_path_factory.mktemp("sphere")

@@ -109,6 +109,7 @@ def main() -> None:
         headroom = kv.pop("headroom", None)
         interp = kv.pop("interp", None)
         surface = kv.pop("distil", "surface") == "surface"
+        batch = kv.pop("distil_batch", 8192)
         kv.setdefault("width", 1.0)  # the interface its table was measured at
         cfg = load_config(None, dict(field="hashgrid", **kv))
         fit = Fit(root, root / "diag_ceiling_run", cfg, stream=io.StringIO())
@@ -127,7 +128,10 @@ def main() -> None:
             hc = dataclasses.replace(hc, interp=interp)
         field = HashGridField(hc, fit.box, seed=cfg.seed)
         t0 = time.perf_counter()
-        rms = fit_to_field(field, truth, cfg.width, cfg.distil_iterations, cfg.seed, surface)
+        rms = fit_to_field(
+            field, truth, cfg.width, cfg.distil_iterations, cfg.seed, surface,
+            device=fit.distil_device(), batch=batch,
+        )  # fmt: skip
         report(name, fit, field, rms, time.perf_counter() - t0)
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps({"scene": args.scene, "rows": rows}, indent=2))
