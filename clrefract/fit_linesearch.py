@@ -125,6 +125,8 @@ class Guide:
         field.set_data(params)
         engine = fit._engine_for(field, cfg.step)
         engine.tracer.upload_field()
+        if fit._occ is not None and engine.tracer.skip_empty:  # the cells it skipped
+            fit._occ.update(fit.it, field, engine.tracer, force=True)
         return cls(field, engine, params, eta_max)
 
 
@@ -243,10 +245,12 @@ def best_move(fit, kept: np.ndarray, direction: np.ndarray, steps, loss: float):
 
 
 def set_params(fit, params: np.ndarray) -> None:
-    """New parameters for the fit's field, on the device."""
+    """New parameters for the fit's field, on the device, with the occupancy rebuilt from
+    them: a resumed run then skips the same cells (in float32 a flight rounds otherwise
+    than the steps it replaces), and a step's moves are few."""
     fit.params[:] = params
     fit.field.set_data(fit.params)
-    fit._upload(stepped=True)
+    fit._upload()
 
 
 def _loss_and_grad(fit, rays: np.ndarray):
