@@ -325,6 +325,7 @@ def _check_resume_flags(run: Path, overrides: dict, config: str | None) -> None:
     (another field kind, say) is refused rather than silently ignored. --iterations may
     lengthen a line-search run (extend_run)."""
     from .fit import extend_run, load_config
+    from .parallel import world
 
     if config:
         raise ClrefractError("--resume takes the run's own config.toml; drop --config")
@@ -343,7 +344,7 @@ def _check_resume_flags(run: Path, overrides: dict, config: str | None) -> None:
         raise ClrefractError(
             f"{run}: --resume cannot change the run's settings: {'; '.join(clash)}"
         )
-    if overrides.get("iterations") is not None:
+    if overrides.get("iterations") is not None and world().root:  # rank 0 writes the run
         extend_run(run, overrides["iterations"])
 
 

@@ -1182,7 +1182,10 @@ def extend_run(out: Path, iterations: int) -> None:
             f"{out}: --resume --iterations {iterations}: the run has {cfg.iterations} steps, "
             "and --resume can only add steps"
         )
-    (out / "config.toml").write_text(_toml(replace(cfg, iterations=iterations)))
+    # whole or not at all (under MPI the other ranks read it): a file beside it, renamed
+    new = out / "config.toml.new"
+    new.write_text(_toml(replace(cfg, iterations=iterations)))
+    new.replace(out / "config.toml")
 
 
 def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stream=None) -> Fit:
