@@ -123,18 +123,19 @@ class Guide:
         if len(params) != len(field.data()):
             raise ClrefractError(f"{path}: the line search's level set does not fit its grid")
         field.set_data(params)
-        engine = fit._engine_for(field, cfg.step)
-        engine.tracer.upload_field()
-        if fit._occ is not None and engine.tracer.skip_empty:  # the cells it skipped
-            fit._occ.update(fit.it, field, engine.tracer, force=True)
-        return cls(field, engine, params, eta_max)
+        guide = cls(field, engine=fit._engine_for(field, cfg.step), params=params, eta_max=eta_max)
+        with _on_guide(fit, guide):
+            fit._upload()  # and the cells it skips, as the run it continues did
+        return guide
 
 
 @contextmanager
-def _on_guide(fit):
-    """`fit` with its guide's field, engine and parameters in place of its own."""
+def _on_guide(fit, guide=None):
+    """`fit` with its guide's (or `guide`'s) field, engine and parameters in place of its
+    own."""
+    guide = guide or fit.guide
     own = fit.field, fit.engine, fit.params
-    fit.field, fit.engine, fit.params = fit.guide.field, fit.guide.engine, fit.guide.params
+    fit.field, fit.engine, fit.params = guide.field, guide.engine, guide.params
     try:
         yield
     finally:
