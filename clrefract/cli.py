@@ -147,6 +147,7 @@ def _cmd_render(args) -> int:
         lanes=args.lanes,
         max_steps=args.max_steps,
         runtime=runtime,
+        skip_empty=args.skip_empty,
     )
     print(
         f"rendering {len(cameras)} view(s) of {field.kind} on {runtime.info.name} "
@@ -173,6 +174,7 @@ def _cmd_render(args) -> int:
                 "integrator": args.integrator,
                 "precision": args.precision,
                 "lanes": tracer.lanes,
+                "skip_empty": args.skip_empty,
                 "views": summary,
             },
             indent=2,
@@ -479,6 +481,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--envmap", help="HDR equirectangular EXR (default: procedural)")
     p.add_argument("--seed", type=int, default=0, help="seed of the procedural environment")
     p.add_argument("--out", default="renders", help="output folder")
+    p.add_argument(
+        "--skip-empty",
+        action="store_true",
+        help="fly straight through the cells where eta is constant (sampled on the device): "
+        "the same image in float64, in fewer steps (as fits score their test views)",
+    )
     _add_engine_options(p)
     p.set_defaults(func=_cmd_render)
 

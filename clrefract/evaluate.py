@@ -32,17 +32,10 @@ class EtaModel:
     slice_label = "eta, fitted"
 
     def __init__(self, field, box, cfg, eta_hi: float, runtime=None):
-        from .tracer import Tracer
+        from .render import run_tracer
 
         self.field, self.box, self.eta_hi = field, box, eta_hi
-        self.tracer = Tracer(
-            field,
-            field.tracing_box(box),
-            step=cfg.step_mm,
-            precision=cfg.precision,
-            lanes=cfg.lanes or None,
-            runtime=runtime,
-        )
+        self.tracer = run_tracer(field, box, cfg, runtime)
         self.surface_rule = f"marching cubes of eta at {self.level:.4g} (halfway to the index)"
 
     @property

@@ -599,6 +599,7 @@ class Fit(HullStart):
         self.params = None
         self.stopped: dict | None = None  # why a diverged run stopped (results.json)
         self._occ = None
+        self._val_tracer = None  # a hash grid's line search: validation that skips
         if cfg.skip_empty:
             from .fit_occupancy import TrainingOccupancy
 
@@ -888,12 +889,12 @@ class Fit(HullStart):
             rng.integers(0, len(self._pool), size=min(self.cfg.batch, len(self._pool)))
         ]
 
-    def _forward_loss(self, idx: np.ndarray) -> float:
+    def _forward_loss(self, idx: np.ndarray, tracer=None) -> float:
         """Loss of the current field on training rays idx, against the sharp environment
-        (forward pass only)."""
+        (forward pass only), traced by its engine's tracer or `tracer`."""
         from .gradient import traced_loss
 
-        r = self.engine.tracer.trace(self.origins[idx], self.dirs[idx])
+        r = (tracer or self.engine.tracer).trace(self.origins[idx], self.dirs[idx])
         return traced_loss(
             self._env_full, r.status, r.direction, self.rgb[idx], self.weights[idx], self.cfg.loss
         )[0]
@@ -902,8 +903,9 @@ class Fit(HullStart):
         """Loss on a fixed batch of the held-out views' rays, most through their masks
         (elsewhere every field near the hull renders alike); on training rays without
         held-out views."""
+        tracer = self._validation_tracer()
         if len(self._held) == 0:
-            return self._forward_loss(self._fixed_batch(11))
+            return self._forward_loss(self._fixed_batch(11), tracer)
         if self._val_idx is None:
             rng = np.random.default_rng([self.cfg.seed, 11])
             marked = np.intersect1d(self._marked_rays(), self._held, assume_unique=True)
@@ -912,7 +914,26 @@ class Fit(HullStart):
             self._val_idx = np.concatenate(
                 [rng.choice(marked, k, replace=False), rng.choice(self._held, size - k)]
             )
-        return self._forward_loss(self._val_idx)
+        return self._forward_loss(self._val_idx, tracer)
+
+    def _validation_tracer(self):
+        """With skip_empty, a hash grid's line search validates the grid through rays that
+        skip the cells where its eta is constant, sampled from the grid as it is now (it
+        changes between validations only by a refit), and steps as its engine does.
+        Forward only, so no gradient is lost; its engine's own rays never skip. On the
+        quick sphere: 4.2 s instead of 9.2, and 1.7 s to sample the grid."""
+        if not (self.cfg.skip_empty and self.guide is not None):
+            return None
+        tracer = self._val_tracer
+        if tracer is None or tracer.field is not self.field:
+            from .render import run_tracer
+
+            tracer = run_tracer(self.field, self.box, self.cfg, self.runtime, False)
+            self._val_tracer = tracer
+            return tracer
+        tracer.upload_field()
+        tracer.set_occupancy(tracer.field_occupancy())
+        return tracer
 
     def _track_best(self) -> float | None:
         every = self.cfg.validate_every

@@ -35,3 +35,21 @@ def render_camera(
         steps += int(res.steps.sum())
     counts = {st.name.lower(): int((status == st).sum()) for st in Status}
     return RenderResult(out.reshape(camera.height, camera.width, 3), counts, steps)
+
+
+def run_tracer(field, box, cfg, runtime=None, interface_steps: bool = True) -> Tracer:
+    """A fitted field's forward tracer, as its run traces it (step, precision, lanes),
+    flying straight through the cells where eta is constant (sampled on the device,
+    occupancy.py). On the quick sphere's hash grid the test views render 3.4x faster; in
+    float64 they come out the same to the bit, in float32 10-16 pixels a view stray from
+    float64 with skipping as without (README, Fitting). `interface_steps` as Tracer's."""
+    return Tracer(
+        field,
+        field.tracing_box(box),
+        step=cfg.step_mm,
+        precision=cfg.precision,
+        lanes=cfg.lanes or None,
+        runtime=runtime,
+        interface_steps=interface_steps,
+        skip_empty=True,
+    )

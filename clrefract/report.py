@@ -75,16 +75,9 @@ def plot_slices(field, box, out_png: Path, truth=None, vmax: float | None = None
 
 
 def _tracer(fit, field):
-    from .tracer import Tracer
+    from .render import run_tracer
 
-    return Tracer(
-        field,
-        field.tracing_box(fit.box),
-        step=fit.cfg.step_mm,
-        precision=fit.cfg.precision,
-        lanes=fit.cfg.lanes or None,
-        runtime=fit.runtime,
-    )
+    return run_tracer(field, fit.box, fit.cfg, fit.runtime)
 
 
 def render_test_views(fit, out_dir: Path | None, limit: int = -1, tracer=None) -> list[dict]:

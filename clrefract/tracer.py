@@ -158,14 +158,10 @@ class Tracer:
                 )
             if integrator != "rkn4" and adjoint:
                 raise ClrefractError("the backward pass with skip_empty reverses rkn4 steps")
-            from .occupancy import empty_distance
-
             res = check_count("occupancy_res", occupancy_res, 1, 1024)
-            if occupancy is None:
-                occupancy = empty_distance(field, box, res)
-            self.occupancy = np.asarray(occupancy, np.int32)
-            if self.occupancy.shape != (res,) * 3:
+            if occupancy is not None and np.shape(occupancy) != (res,) * 3:
                 raise ClrefractError(f"occupancy must have shape {(res,) * 3}")
+            self.occupancy = np.full((res,) * 3, 0, np.int32)  # every cell live until set
             defines.update(SKIP_EMPTY=1, OCC_N=res)
         sources = ["common.h", field.source, "trace.cl"]
         if adjoint not in (False, True, "continuous", "discrete"):
@@ -190,9 +186,17 @@ class Tracer:
         self._no_ckpt = cl.Buffer(self.runtime.context, cl.mem_flags.READ_WRITE, 64)
         self._skip_args = []
         self.launch_bytes = 0  # device buffers the last launch used (bench's memory column)
-        if self.skip_empty:
-            self.set_occupancy(self.occupancy)
         self.upload_field()
+        if self.skip_empty:
+            self.set_occupancy(self.field_occupancy() if occupancy is None else occupancy)
+
+    def field_occupancy(self) -> np.ndarray:
+        """The occupancy (occupancy.empty_distance's) of the field as uploaded, sampled by
+        the device's own kernel; for a field whose parameters changed, set_occupancy it."""
+        from .occupancy import empty_distance
+
+        res = self.occupancy.shape[0]
+        return empty_distance(self.field, self.box, res, eval_fn=self.eval_field)
 
     def set_occupancy(self, distance: np.ndarray) -> None:
         """Replace the occupancy (empty_distance's grid, same resolution) with a new one."""

@@ -1,6 +1,8 @@
 """Empty-space skipping: the same exit rays, fewer steps, less time, for objects that fill
 a small part of the box; and in training, the same loss and gradient (forward and backward
-pass, the fit's occupancy rule: fit_occupancy.py) for less time.
+pass, the fit's occupancy rule: fit_occupancy.py) for less time. The rendering part includes
+a hash grid from the hull, as fits score and validate it (render.run_tracer), and the time
+to sample each field's occupancy on the device.
 
     python tools/bench_skip_empty.py [--rays 16384] [--json bench_results/skip_empty.json]
         [--part render|train|both]
@@ -24,6 +26,23 @@ from clrefract.gradcheck import smooth_env
 from clrefract.gradient import GradientEngine
 from clrefract.occupancy import distance_of, live_cells_levelset, live_cells_nodes
 from clrefract.tracer import Tracer
+
+
+def hashgrid_ball():
+    """The fit's default hash grid from the hull (ramp output, eta exactly 1 in air) fitted
+    on the device to a ball of radius 10 at a 0.5 mm interface, in a box as a fit's object
+    box is around it; its step is the fit's (w/4)."""
+    from clrefract.fields.hashgrid import HashGridField
+    from clrefract.fit import FitConfig, hashgrid_config
+    from clrefract.runtime import default_runtime
+
+    cfg = FitConfig(field="hashgrid", width=0.5)
+    field = HashGridField(hashgrid_config(cfg, 1.5), Box((-30,) * 3, (30,) * 3, 4.0), seed=0)
+    pts = np.random.default_rng(2).uniform(-30, 30, (400_000, 3))
+    r = np.linalg.norm(pts, axis=1)
+    device = (default_runtime(), "float32")
+    field.fit_surface(pts, r - 10.0, pts / r[:, None], 1.5, 0.5, 600, device=device)
+    return field, cfg.step_mm
 
 
 def timed(tr, o, d, repeats=3):
@@ -137,12 +156,16 @@ def main() -> None:
                 VoxelGrid.from_field(Sphere(radius=10.0, width=2.0), res=65),
                 0.5,
             ),
+            ("hashgrid ball R10", *hashgrid_ball()),
         ]
     for name, f, step in scenes:
         box = f.tracing_box(Box())
         for precision in ("float32", "float64"):
             a, ta = timed(Tracer(f, box=box, step=step, precision=precision), o, d)
-            b, tb = timed(Tracer(f, box=box, step=step, precision=precision, skip_empty=True), o, d)
+            t0 = time.perf_counter()  # the occupancy, sampled on the device
+            skip = Tracer(f, box=box, step=step, precision=precision, skip_empty=True)
+            t_occ = time.perf_counter() - t0
+            b, tb = timed(skip, o, d)
             dd = np.abs(a.direction - b.direction).max(1)
             row = {
                 "part": "render",
@@ -152,6 +175,7 @@ def main() -> None:
                 "seconds": ta,
                 "seconds_skip": tb,
                 "speedup": ta / tb,
+                "occupancy_seconds": t_occ,
                 "steps_per_ray": float(a.steps.mean()),
                 "steps_per_ray_skip": float(b.steps.mean()),
                 "max_direction_diff": float(dd.max()),
@@ -159,7 +183,8 @@ def main() -> None:
             }
             rows.append(row)
             print(
-                f"{name:22s} {precision}  {ta:.3f}s -> {tb:.3f}s (x{ta / tb:.1f})  steps "
+                f"{name:22s} {precision}  {ta:.3f}s -> {tb:.3f}s (x{ta / tb:.1f}, occupancy "
+                f"{t_occ:.2f}s)  steps "
                 f"{row['steps_per_ray']:.0f} -> {row['steps_per_ray_skip']:.0f}  max |dd| "
                 f"{dd.max():.1e}, rays > 1e-6: {100 * row['rays_over_1e-6']:.2f}%",
                 flush=True,
