@@ -119,6 +119,7 @@ class _RayDepths:
             coords.append(g[near_hull])
             rays.append(s.ray[near_hull] + a)
         self.g = np.concatenate(coords) if coords else np.empty((0, 3))
+        self._weights = _trilinear(self.g, tuple(res))
         self._set(np.concatenate(rays) if rays else np.empty(0, np.int64), len(origins))
 
     def _set(self, ray: np.ndarray, n: int) -> None:
@@ -129,18 +130,45 @@ class _RayDepths:
         kept = which[self.ray]
         new_id = np.cumsum(which) - 1
         self.g = self.g[kept]
+        self._weights = self._weights[kept]
         self._set(new_id[self.ray[kept]], int(which.sum()))
 
     def deepest(self, grid: np.ndarray):
         value, where = np.full(self.n, -np.inf), np.zeros((self.n, 3))
         if len(self.ray) == 0:
             return value, where
-        v = ndimage.map_coordinates(grid, self.g.T, order=1, mode="nearest")
+        v = self._weights @ grid.ravel()
         value[self.rays] = np.maximum.reduceat(v, self.starts)
         at = np.flatnonzero(v == value[self.ray])
         first = at[np.unique(self.ray[at], return_index=True)[1]]
         where[self.ray[first]] = self.g[first]
         return value, where
+
+
+def _trilinear(g: np.ndarray, shape: tuple):
+    """Sparse (points, nodes) matrix whose product with a grid is its trilinear value at the
+    points g (node coordinates; beyond the edge, the edge's: map_coordinates' order=1,
+    mode="nearest"). The flow checks its rays every few steps at the same points: on the
+    quick sphere (2.5 million samples) a product takes 24 ms, map_coordinates 155 ms."""
+    from scipy.sparse import csr_matrix
+
+    top = np.asarray(shape) - 1
+    g = np.clip(g, 0, top)
+    base = np.minimum(np.floor(g).astype(np.int64), np.maximum(top - 1, 0))
+    f = g - base
+    stride = np.array([shape[1] * shape[2], shape[2], 1])
+    flat = base @ stride
+    cols = np.empty((len(g), 8), np.int64)
+    vals = np.empty((len(g), 8))
+    for k, corner in enumerate(np.ndindex(2, 2, 2)):  # x slowest: columns in order
+        off = np.array(corner)
+        cols[:, k] = flat + off @ stride
+        vals[:, k] = np.prod(np.where(off, f, 1 - f), axis=1)
+    n_nodes = int(np.prod(shape))
+    return csr_matrix(
+        (vals.ravel(), np.minimum(cols, n_nodes - 1).ravel(), np.arange(0, 8 * len(g) + 1, 8)),
+        shape=(len(g), n_nodes),
+    )
 
 
 def _curvature_motion(d: np.ndarray, h) -> np.ndarray:

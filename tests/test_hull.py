@@ -76,6 +76,23 @@ def test_tightening_keeps_a_sphere(sphere_dataset):
         assert 0.88 < (tight.distance > 0).sum() / ball.sum() < 1.05
 
 
+def test_the_flows_ray_checks_interpolate_as_map_coordinates():
+    """The tightening flow reads its grid at fixed ray samples through a sparse matrix made
+    once: the same values as scipy's trilinear map_coordinates (edges extended), points
+    beyond the grid and on its last nodes included."""
+    from scipy import ndimage
+
+    from clrefract.hull_tighten import _trilinear
+
+    rng = np.random.default_rng(0)
+    for shape in [(7, 5, 6), (2, 9, 3)]:
+        grid = rng.normal(size=shape)
+        g = rng.uniform(-1.0, np.asarray(shape) + 0.5, (4000, 3))
+        g[:10] = np.asarray(shape) - 1  # the last node exactly
+        want = ndimage.map_coordinates(grid, g.T, order=1, mode="nearest")
+        np.testing.assert_allclose(_trilinear(g, shape) @ grid.ravel(), want, atol=1e-12)
+
+
 def test_cameras_close_to_a_large_box_carve_beyond_their_frames(tmp_path):
     """Cameras 110 mm from the centre of a 100 mm box see 59 mm across: nodes near its
     corners lie outside most frames. A mask's edge goes on beyond the frame, so those nodes
