@@ -2,11 +2,12 @@
 (in cells, Chebyshev) to the nearest such cell, for empty-space skipping in the tracer.
 
 A ray in a cell at distance k >= 1 can fly straight (eta is constant there, so x'' = 0) to
-the cell's far side and k - 1 cells further, in one move instead of steps. Built from the
-field's NumPy reference: eta sampled on a lattice `sub` samples per cell (the cells'
-corner samples shared with their neighbours, so that any change of eta between two adjacent
-samples falls in a cell), a cell is occupied where its samples differ, and the occupancy is
-dilated by `dilate` cells against features narrower than the sample spacing.
+the cell's far side and k - 1 cells further, in one move instead of steps. Built from eta
+(the field's NumPy reference, or a tracer's device kernel: Tracer.field_occupancy) sampled
+on a lattice `sub` samples per cell (the cells' corner samples shared with their
+neighbours, so that any change of eta between two adjacent samples falls in a cell), a cell
+is occupied where its samples differ, and the occupancy is dilated by `dilate` cells
+against features narrower than the sample spacing.
 """
 
 from __future__ import annotations
