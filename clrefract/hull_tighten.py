@@ -164,7 +164,7 @@ def _trilinear(g: np.ndarray, shape: tuple):
         off = np.array(corner)
         cols[:, k] = flat + off @ stride
         vals[:, k] = np.prod(np.where(off, f, 1 - f), axis=1)
-    n_nodes = int(np.prod(shape))
+    n_nodes = int(np.prod(shape))  # a 1-node axis's far corner (weight 0) kept in range
     return csr_matrix(
         (vals.ravel(), np.minimum(cols, n_nodes - 1).ravel(), np.arange(0, 8 * len(g) + 1, 8)),
         shape=(len(g), n_nodes),

@@ -74,20 +74,14 @@ def plot_slices(field, box, out_png: Path, truth=None, vmax: float | None = None
     plt.close(fig)
 
 
-def _tracer(fit, field):
-    from .render import run_tracer
-
-    return run_tracer(field, fit.box, fit.cfg, fit.runtime)
-
-
 def render_test_views(fit, out_dir: Path | None, limit: int = -1, tracer=None) -> list[dict]:
     """Render the dataset's test views with the fitted field (or `tracer`'s); PSNR and SSIM
     per view. Images go to out_dir (rendering beside the photograph) unless it is None."""
-    from .render import render_camera
+    from .render import render_camera, run_tracer
 
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
-    tracer = tracer or _tracer(fit, fit.field)
+    tracer = tracer or run_tracer(fit.field, fit.box, fit.cfg, fit.runtime)
     env = fit.ds.envmap()
     cams = fit.ds.test if limit < 0 else fit.ds.test[:limit]
     rows = []
@@ -142,7 +136,9 @@ def score_field(fit, field=None, out_dir: Path | None = None, surface: Path | No
     field = field or fit.field
     result: dict = {"test_psnr": None, "test_ssim": None, "views": []}
     # evaluates eta on the device too: hash grids are slow in NumPy
-    tracer = _guarded(result, "tracer", lambda: _tracer(fit, field))
+    from .render import run_tracer
+
+    tracer = _guarded(result, "tracer", lambda: run_tracer(field, fit.box, fit.cfg, fit.runtime))
     if tracer is None:
         return result
     views = _guarded(
