@@ -40,6 +40,7 @@ class TrainingOccupancy:
         self.slack = 2.0 * every * lr_phi if kind == "levelset" else 0.0
         self.built_at: int | None = None
         self._phi0: np.ndarray | None = None
+        self._tracer = None  # the tracer last given an occupancy
         self.live_fraction = 1.0
         self.rebuilds = 0
 
@@ -61,11 +62,18 @@ class TrainingOccupancy:
         return live_cells_nodes(nodes, field, box, self.res)
 
     def update(self, it: int, field, tracer, free: np.ndarray | None = None, force=False):
-        """Rebuild the tracer's occupancy if it is due (or forced); True if rebuilt."""
+        """Rebuild the tracer's occupancy if it is due (or forced); True if rebuilt. Level-set
+        nodes as they were at the last build keep it (a start search that moves only the
+        index): a rebuild would give the same."""
         if not (force or self.due(it, field)):
             return False
+        if self.kind == "levelset" and tracer is self._tracer:
+            if np.array_equal(field.phi, self._phi0):
+                self.built_at = it
+                return False
         live = self.live(field, tracer.box, free)
         tracer.set_occupancy(distance_of(live))
+        self._tracer = tracer
         self.live_fraction = float(live.mean())
         self.built_at = it
         if self.kind == "levelset":

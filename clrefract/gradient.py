@@ -87,17 +87,16 @@ def traced_loss(env, status, velocity, targets, weights=None, space="srgb", grou
     )
 
 
-def backward_group_size(items: int, lanes: int) -> int | None:
-    """Work-group size of the backward pass. On CPUs (lanes > 1) PoCL runs a work-group as
-    a loop over its work-items, each with its own copy of the private accumulators (4 KB for
-    a B-spline's 64 taps) on one thread's stack: the driver's choice of hundreds of
-    work-items overflows it (a crash, seen at 2500 work-items in float64). At most 32."""
-    if lanes == 1:
-        return None
-    g = 32
-    while items % g:
-        g //= 2
-    return g
+def steps_to_reverse(steps: np.ndarray, status: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """The backward pass's step count per (padded) ray: none for the black rays (trapped,
+    non-finite) whose adjoint is zero, nor for the padding beyond mu's rows. The adjoint is
+    linear in mu, so they add exactly nothing; a trapped ray held its work-item's lanes to
+    the step cap."""
+    m = len(mu)
+    out = steps.copy()
+    out[:m][renders_black(status[:m]) & ~mu.any(axis=1)] = 0
+    out[m:] = 0
+    return out
 
 
 class GradientEngine:
@@ -301,10 +300,11 @@ class GradientEngine:
             back = [np.empty(size, tr.dtype) for _ in range(5)]
             # continuous: from the last state; discrete: replayed from the entry and checkpoints
             start = [*last, *outs[3:6]] if self.adjoint == "continuous" else [*o, *d]
+            steps_back = steps_to_reverse(lat, st, mu[idx])
             args = [
                 tr.dtype(tr.step),
                 *start,
-                lat,
+                steps_back,
                 *mu_cols,
                 InOut(grad),
                 InOut(partial),  # the kernel accumulates in it
@@ -316,7 +316,7 @@ class GradientEngine:
             if self.adjoint == "discrete":
                 args.append(self._scratch_buffer(q, size))
             args += [Out(back[3]), tr.dtype(self.growth_max), Out(back[4]), *tr._skip_args]
-            tr._enqueue(self._k_adjoint, items, args, q, local=backward_group_size(items, tr.lanes))
+            tr._enqueue(self._k_adjoint, items, args, q)
             jobs.append((idx, grad, partial, back, items))
         total = np.zeros(n_par)
         back_pos = np.empty((n, 3))

@@ -101,3 +101,28 @@ def test_index_gradient_and_descent_at_the_fit_settings(scene, cap):
     r0 = engine(0.0).loss_and_grad(o, d, t, env)
     assert (r0.growth > g_cap).sum() > 0
     assert abs(r0.grad[-1] - r.grad[-1]) < 1e-3 * abs(r.grad[-1])
+
+
+@pytest.mark.parametrize("skip", [False, True])
+def test_trapped_rays_reverse_no_step_and_change_nothing(scene, monkeypatch, skip):
+    """Black rays (trapped: no light, no adjoint) skip the backward pass: the gradient is
+    the one that reversing all their steps gives."""
+    from clrefract import gradient
+
+    o, d, t, env = scene
+    eng = GradientEngine(
+        sphere(15.3, 2.6), BOX, step=STEP, precision="float64", skip_empty=skip, max_steps=900
+    )
+    fast = eng.loss_and_grad(o, d, t, env)
+    trapped = (fast.status == 2).sum()
+    assert 10 <= trapped < len(o) // 4
+    # a black ray that a terminal loss gives an adjoint is reversed; the padding never is
+    padded = np.arange(20, dtype=np.int32)
+    mu = np.zeros((16, 3))
+    mu[3] = 1.0
+    back = gradient.steps_to_reverse(padded, np.full(20, 2, np.int32), mu)
+    assert list(back[:5]) == [0, 0, 0, 3, 0] and not back[16:].any()
+    monkeypatch.setattr(gradient, "steps_to_reverse", lambda steps, status, mu: steps)
+    every = eng.loss_and_grad(o, d, t, env)
+    assert fast.loss == every.loss
+    assert np.abs(fast.grad - every.grad).max() <= 1e-12 * np.abs(every.grad).max()

@@ -214,6 +214,29 @@ def test_whispering_gallery_rays_stop_trapped():
     assert np.abs(res.speed / eta - 1).max() < 3e-2
 
 
+@pytest.mark.parametrize(
+    "precision,lanes,skip", [("float32", 16, True), ("float64", 16, False), ("float32", 1, False)]
+)
+def test_long_rays_traced_again_end_as_in_one_pass(precision, lanes, skip):
+    """Rays still going after the first pass's cap are traced again, packed, with the full
+    cap: each ray's exit, status and step count are those of one pass, to the bit."""
+    f = Sphere(radius=R, eta=3.0, width=1.0)
+    rng = np.random.default_rng(3)
+    n = 300  # random rays at the sphere, most bent, a few whispering along its surface
+    o = np.column_stack([np.full(n, -40.0), rng.uniform(-R - 1, R + 1, (n, 2))])
+    d = np.column_stack([np.ones(n), rng.normal(0, 0.05, (n, 2))])
+    o[::50], d[::50] = [0.0, 19.0, 0.0], [1.0, 0.0, 0.0]
+    kw = dict(step=0.25, precision=precision, lanes=lanes, skip_empty=skip)
+    two = Tracer(f, **kw)
+    one = Tracer(f, **kw)
+    one.long_ray_steps = one.max_steps
+    a, b = two.trace(o, d), one.trace(o, d)
+    assert 0 < (b.steps > two.long_ray_steps).sum() < n  # the 2nd pass took some rays
+    assert (b.status == Status.TRAPPED).sum() >= 6
+    for name in ("position", "direction", "status", "steps", "last_position"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
 # --- far from the origin in float32 -----------------------------------------------------------
 
 

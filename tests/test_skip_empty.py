@@ -17,6 +17,7 @@ from clrefract.fit_occupancy import TrainingOccupancy
 from clrefract.gradcheck import smooth_env
 from clrefract.gradient import GradientEngine
 from clrefract.occupancy import (
+    cell_reduce,
     distance_of,
     live_cells_levelset,
     live_cells_nodes,
@@ -45,6 +46,21 @@ def test_same_rays_with_fewer_steps(field, step):
     assert np.abs(a.direction - b.direction).max() < 1e-9
     assert np.abs(a.position - b.position).max() < 1e-7
     assert b.steps.mean() < a.steps.mean() / 3
+
+
+def test_a_launch_of_4096_work_items_skips_too():
+    """65,536 rays in 16 lanes: PoCL's own work-group of 4,096 work-items put as many
+    copies of the skipping gather's arrays on one thread's stack and crashed the process;
+    tracer.work_group_size keeps groups at 32."""
+    n = 65536
+    o = np.column_stack([np.full(n, -120.0), np.random.default_rng(0).uniform(-30, 30, (n, 2))])
+    d = np.tile([1.0, 0.0, 0.0], (n, 1))
+    f = Sphere(radius=10.0, eta=1.5, width=1.0)
+    a = Tracer(f, step=0.25, lanes=16).trace(o, d)
+    b = Tracer(f, step=0.25, lanes=16, skip_empty=True).trace(o, d)
+    assert np.array_equal(a.status, b.status)
+    assert np.abs(a.direction - b.direction).max() < 1e-4
+    assert b.steps.mean() < a.steps.mean() / 4
 
 
 def test_a_fitted_hash_grid_renders_the_same_with_skipping_in_fewer_steps():
@@ -209,6 +225,29 @@ def test_level_set_occupancy_holds_while_no_node_moves_more_than_the_slack():
     assert not occ.due(5, ls)
     ls.phi[8, 8, 8] += 2.1 * occ.slack
     assert occ.due(5, ls) and occ.due(10, ls)
+
+
+@pytest.mark.parametrize("n,res", [(7, 5), (6, 16), (9, 9)])
+def test_a_cells_bound_is_the_extreme_of_the_nodes_that_reach_it(n, res):
+    """cell_reduce against the definition: per cell, the nodes within `reach` spacings of it
+    on every axis (cells coarser and finer than the nodes, a box offset from the nodes')."""
+    node_box = Box((-10.0, -8.0, -9.0), (10.0, 12.0, 9.0), 1.0)
+    box = Box((-11.0, -7.0, -9.5), (9.0, 12.5, 10.0), 1.0)
+    nodes = np.random.default_rng(n).normal(size=(n, n, n))
+    lo = cell_reduce(nodes, node_box, box, res, 2, np.min)
+    hi = cell_reduce(nodes, node_box, box, res, 2, np.max)
+    near = []
+    for a in range(3):
+        x = np.linspace(node_box.lo[a], node_box.hi[a], n)
+        e = np.linspace(box.lo[a], box.hi[a], res + 1)
+        h = x[1] - x[0]
+        # a node just 2 h away (support ends there) is in: a wider bound is still a bound
+        ahead = x[None, :] - 2 * h < e[1:, None] + 1e-9 * h
+        near.append(ahead & (x[None, :] + 2 * h > e[:-1, None] - 1e-9 * h))
+    for c in np.ndindex(res, res, res):
+        sel = nodes[np.ix_(near[0][c[0]], near[1][c[1]], near[2][c[2]])]
+        if sel.size:  # cells beyond every node's reach take the nearest nodes' (clipped)
+            assert lo[c] == sel.min() and hi[c] == sel.max()
 
 
 def test_hash_grids_skip_only_on_the_level_set_they_follow():

@@ -14,8 +14,8 @@ from contextlib import ExitStack
 
 import numpy as np
 
-from ..gradient import backward_group_size
 from ..limits import host_threads
+from ..tracer import work_group_size
 
 DISTIL_PIECE_MIN = 1024  # points per thread of a host batch, at least
 # work-items of the reverse kernel, at most: each sums the MLP's gradient over its points in
@@ -171,8 +171,8 @@ class DevicePasses:
         return grad
 
     def _group(self, items: int):
-        """Work-groups small enough for PoCL's stack (gradient.backward_group_size)."""
-        g = backward_group_size(items, self.lanes)
+        """Work-groups small enough for PoCL's stack (tracer.work_group_size)."""
+        g = work_group_size(items, self.lanes)
         return None if g is None else (g,)
 
     @property
