@@ -328,10 +328,10 @@ class Tracer:
         """Trace rays to the box's exit. In two passes: every ray up to `long_ray_steps`,
         then the rays still going, packed together, from their start with the full cap.
         A work-item's lanes run until its longest ray ends, so one trapped ray among 16
-        held the other 15 lanes' time: on a faceted glass start, 88 of 8,192 rays took
-        1.7x the trace's time. Each ray's result is its single pass's, to the bit where a
-        ray's rounding does not hang on its launch (not at 1 lane in float32 on pip's
-        PoCL, which rounds by the launch's size, passes or not)."""
+        held the other 15 lanes' time: on a faceted glass start with 88 of 8,192 rays
+        trapped, one pass took 1.6x as long as two. Each ray's result is its single
+        pass's, to the bit where a ray's rounding does not hang on its launch (not at 1
+        lane in float32 on pip's PoCL, which rounds by the launch's size, passes or not)."""
         o, n = self._padded_columns(self._local(origins, "ray origins"), "ray origins")
         d, _ = self._padded_columns(directions, "ray directions")
         if len(d[0]) != len(o[0]):

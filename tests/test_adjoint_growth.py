@@ -15,7 +15,7 @@ from clrefract.fields.base import Box
 from clrefract.fields.levelset import LevelSetField
 from clrefract.fit import FitConfig
 from clrefract.gradient import GradientEngine
-from clrefract.tracer import Tracer
+from clrefract.tracer import Status, Tracer
 
 BOX = Box(lo=(-30.0,) * 3, hi=(30.0,) * 3, margin=3.0)
 WIDTH, STEP = 1.0, 0.25  # the fit's defaults: interface width 1 mm, step w/4
@@ -114,7 +114,7 @@ def test_trapped_rays_reverse_no_step_and_change_nothing(scene, monkeypatch, ski
         sphere(15.3, 2.6), BOX, step=STEP, precision="float64", skip_empty=skip, max_steps=900
     )
     fast = eng.loss_and_grad(o, d, t, env)
-    trapped = (fast.status == 2).sum()
+    trapped = (fast.status == Status.TRAPPED).sum()
     assert 10 <= trapped < len(o) // 4
     # a black ray that a terminal loss gives an adjoint is reversed; the padding never is
     padded = np.arange(20, dtype=np.int32)
