@@ -62,3 +62,52 @@ class Adam:
             np.array(d["adam_v"], float),
             np.array(d["adam_t"], np.int64),
         )
+
+
+class DeviceAdam:
+    """Adam.step on a parameter buffer that lives on an OpenCL device, its moments beside it
+    (kernels_cl/adam.cl, built into the caller's program as `kernel`): a hash grid's
+    distillation then keeps its million table entries off the host between steps."""
+
+    def __init__(
+        self,
+        runtime,
+        dtype,
+        kernel,
+        n: int,
+        groups: list[ParamGroup],
+        beta1: float = 0.9,
+        beta2: float = 0.99,
+        eps: float = 1e-15,
+    ):
+        cl, ctx, q = runtime.cl, runtime.context, runtime.queue
+        self.queue, self.groups, self._k = q, groups, kernel
+        self._real = np.dtype(dtype).type
+        self._consts = tuple(self._real(x) for x in (beta1, beta2, eps))
+        n = max(n, 1)
+        rw = cl.mem_flags.READ_WRITE
+        self._m, self._v = (cl.Buffer(ctx, rw, n * np.dtype(dtype).itemsize) for _ in "mv")
+        self._t = cl.Buffer(ctx, rw, n * 4)
+        for buf in (self._m, self._v, self._t):
+            cl.enqueue_fill_buffer(
+                q, buf, np.int32(0) if buf is self._t else self._real(0), 0, buf.size
+            )
+
+    def step(self, params, grad, lr_scale: float = 1.0) -> None:
+        """Update the device buffer `params` in place from the device buffer `grad`."""
+        for g in self.groups:
+            if g.stop > g.start:
+                self._k(
+                    self.queue,
+                    (g.stop - g.start,),
+                    None,
+                    params,
+                    self._m,
+                    self._v,
+                    self._t,
+                    grad,
+                    np.int32(g.start),
+                    self._real(g.lr * lr_scale),
+                    *self._consts,
+                    np.int32(g.sparse),
+                )

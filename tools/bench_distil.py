@@ -1,7 +1,9 @@
 """The hash grid's distillation (fitting it to a solid: a hash-grid start, and the refit
-after every line-search step) four ways, side by side in one run: NumPy on the host in one
+after every line-search step) five ways, side by side in one run: NumPy on the host in one
 piece and in one piece per core on threads (float64), and the OpenCL kernels on the
-default device (kernels_cl/hashgrid_distil.cl) in float32 and float64. Steps per second,
+default device (kernels_cl/hashgrid_distil.cl) in float32 and float64, their Adam step on
+the device too (kernels_cl/adam.cl), and in float32 with the Adam step on the host (the
+parameters and the gradient cross to it and back each step). Steps per second,
 and what each fit came to: the largest parameter difference from the host's one-piece fit,
 and the RMS error of eta against the sphere at 50,000 of the points.
 
@@ -17,15 +19,42 @@ import argparse
 import json
 import os
 import time
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import numpy as np
 
+import clrefract.fields.hashgrid_passes as passes
+from clrefract.adam import Adam
 from clrefract.fields.base import Box
 from clrefract.fields.hashgrid import HashGridConfig, HashGridField
 from clrefract.fit import FitConfig, hashgrid_config
 from clrefract.limits import host_threads
 from clrefract.runtime import default_runtime
+
+
+class HostAdamPasses(passes.DevicePasses):
+    """The device's passes with the Adam step on the host."""
+
+    def begin(self, params, groups):
+        self._p, self._host_adam = params.copy(), Adam(len(params), groups)
+
+    def train_step(self, pts, residual, lr_scale):
+        grad = self.reverse(*residual(*self.forward(self._p, pts)))
+        self._host_adam.step(self._p, grad, lr_scale)
+
+    def result(self):
+        return self._p
+
+
+@contextmanager
+def adam_on_host():
+    own = passes.DevicePasses
+    passes.DevicePasses = HostAdamPasses
+    try:
+        yield
+    finally:
+        passes.DevicePasses = own
 
 
 def distil(cfg: HashGridConfig, box: Box, solid, steps: int, threads: int, device):
@@ -60,10 +89,12 @@ def main() -> None:
         (f"host, {threads} pieces", threads, None),
         (f"{runtime.info.name[:24]}, float32", threads, (runtime, "float32")),
         (f"{runtime.info.name[:24]}, float64", threads, (runtime, "float64")),
+        (f"{runtime.info.name[:16]}, float32, host Adam", threads, (runtime, "float32")),
     ]
     rows, first = [], None
     for name, n, device in ways:
-        rate, field = distil(cfg, box, solid, args.steps, n, device)
+        with adam_on_host() if name.endswith("host Adam") else nullcontext():
+            rate, field = distil(cfg, box, solid, args.steps, n, device)
         first = field.data() if first is None else first
         rows.append(
             {

@@ -675,23 +675,21 @@ class HashGridField(Field):
         (clrefract.progress) told of each iteration. `device`: (runtime, precision) runs
         the passes as OpenCL kernels there, else they run in NumPy on the host's cores
         (clrefract/fields/hashgrid_passes.py)."""
-        from ..adam import Adam
         from .hashgrid_passes import DevicePasses, HostPasses
 
         rng = np.random.default_rng(seed)
-        p = self.params_vec.copy()
-        adam = Adam(len(p), self.param_groups(lr_table=lr[0], lr_mlp=lr[1]))
         size = min(batch, len(pts))
         passes = DevicePasses(self, *device) if device else HostPasses(self, size)
         with passes:
+            passes.begin(self.params_vec, self.param_groups(lr_table=lr[0], lr_mlp=lr[1]))
             for it in range(iterations):
                 i = rng.integers(0, len(pts), size=size)
-                o, og = passes.forward(p, pts[i])
-                grad = passes.reverse(*residual(i, o, og))
-                adam.step(p, grad, lr_scale=0.1 ** (it / iterations))
+                passes.train_step(
+                    pts[i], lambda o, og, i=i: residual(i, o, og), 0.1 ** (it / iterations)
+                )
                 if progress is not None:
                     progress.update()
-        self.set_data(p)
+            self.set_data(passes.result())
 
     def eta_rms(self, pts: np.ndarray, eta: np.ndarray, device=None) -> float:
         """RMS error of eta against values at points; `device` as _distil's (NumPy takes

@@ -5,7 +5,11 @@ sum_n ob_n do/dtheta + omb_n d(mu_n . grad o)/dtheta.
 HostPasses runs them in float64 NumPy, the batch cut into one piece per core on threads.
 DevicePasses runs them as OpenCL kernels (kernels_cl/hashgrid_distil.cl) on a fit's device,
 in its precision. Both take the same batches, so a distillation differs between them by
-rounding only.
+rounding only. Each holds a distillation's parameters and Adam (`begin`, `train_step`,
+`result`): DevicePasses keeps them on the device (adam.DeviceAdam), so that a step sends it
+only its points, their residuals and the MLP's summed gradient, where a host Adam took a
+quarter of the quick sphere's refit moving the million table entries and their gradient
+across and updating them (tools/bench_distil.py).
 """
 
 from __future__ import annotations
@@ -47,6 +51,22 @@ class HostPasses:
     def __exit__(self, *exc):
         self._stack.close()
 
+    def begin(self, params: np.ndarray, groups) -> None:
+        """Hold a distillation's parameters (a copy) and its Adam."""
+        from ..adam import Adam
+
+        self._p = params.copy()
+        self._adam = Adam(len(params), groups)
+
+    def train_step(self, pts: np.ndarray, residual, lr_scale: float) -> None:
+        """One Adam step on the held parameters from the residuals `residual(o, grad o)`
+        at `pts`."""
+        grad = self.reverse(*residual(*self.forward(self._p, pts)))
+        self._adam.step(self._p, grad, lr_scale)
+
+    def result(self) -> np.ndarray:
+        return self._p
+
     def forward(self, params: np.ndarray, pts: np.ndarray):
         f = self.field
         xs = np.array_split(pts, self.pieces)
@@ -71,9 +91,13 @@ class DevicePasses:
         self.lanes = field.lanes_on(runtime, lanes or runtime.default_lanes(precision))
         runtime.check_lanes(self.lanes, precision)
         defines = {**field.defines(), **field.box.defines(), "LANES": self.lanes}
-        sources = ["common.h", field.source, field.adjoint_source, "hashgrid_distil.cl"]
+        sources = ["common.h", field.source, field.adjoint_source, "hashgrid_distil.cl", "adam.cl"]
         prg = runtime.build(sources, defines, precision)
-        self._k_o, self._k_reverse = prg.hg_points_o, prg.hg_points_reverse
+        self._k_o, self._k_reverse, self._k_adam = (
+            prg.hg_points_o,
+            prg.hg_points_reverse,
+            prg.adam_step,
+        )
         cl, ctx = runtime.cl, runtime.context
         mf = cl.mem_flags
         c = field.config
@@ -82,9 +106,11 @@ class DevicePasses:
             ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self._real(np.append(field.params(), 0))
         )
         self._fd = cl.Buffer(ctx, mf.READ_ONLY, (self.n_params + 1) * self._itemsize)
-        # the kernel adds only table entries there (the MLP's gradient goes to `partial`)
-        self._grad = cl.Buffer(ctx, mf.READ_WRITE, self.n_tables * self._itemsize)
+        # the kernel adds only table entries there (the MLP's gradient goes to `partial`, and
+        # from the host into the rest for the device's Adam)
+        self._grad = cl.Buffer(ctx, mf.READ_WRITE, self.n_params * self._itemsize)
         self._bufs = {}
+        self._adam = None
 
     def __enter__(self):
         return self
@@ -119,9 +145,41 @@ class DevicePasses:
             bufs.append(buf)
         return bufs
 
+    def begin(self, params: np.ndarray, groups) -> None:
+        """Hold a distillation's parameters and its Adam (DeviceAdam) on the device."""
+        from ..adam import DeviceAdam
+
+        self._upload(params)
+        self._adam = DeviceAdam(self.runtime, self.dtype, self._k_adam, self.n_params, groups)
+
+    def train_step(self, pts: np.ndarray, residual, lr_scale: float) -> None:
+        """One Adam step on the held parameters from the residuals `residual(o, grad o)` at
+        `pts`: only the points, residuals and the MLP's gradient cross to the device."""
+        q = self.runtime.queue
+        shared = self._reverse_pass(*residual(*self._points_o(pts)))
+        offset = self.field.shared_offset * self._itemsize
+        self.runtime.cl.enqueue_copy(
+            q, self._grad, self._real(shared), dst_offset=offset, is_blocking=False
+        )
+        self._adam.step(self._fd, self._grad, lr_scale)
+
+    def result(self) -> np.ndarray:
+        """The held parameters, as float64."""
+        p = np.empty(self.n_params + 1, self.dtype)
+        self.runtime.cl.enqueue_copy(self.runtime.queue, p, self._fd)
+        return p[:-1].astype(np.float64)
+
+    def _upload(self, params: np.ndarray) -> None:
+        self.runtime.cl.enqueue_copy(
+            self.runtime.queue, self._fd, self._real(np.append(params, 0)), is_blocking=False
+        )
+
     def forward(self, params: np.ndarray, pts: np.ndarray):
+        self._upload(params)
+        return self._points_o(pts)
+
+    def _points_o(self, pts: np.ndarray):
         cl, q = self.runtime.cl, self.runtime.queue
-        cl.enqueue_copy(q, self._fd, self._real(np.append(params, 0)), is_blocking=False)
         n = len(pts)
         self._pad = (-n) % self.lanes
         self._n = n
@@ -138,6 +196,17 @@ class DevicePasses:
         return o, np.stack(host[1:], axis=1)[:n].astype(np.float64)
 
     def reverse(self, ob: np.ndarray, omb: np.ndarray, mu: np.ndarray) -> np.ndarray:
+        shared = self._reverse_pass(ob, omb, mu)
+        tables = np.empty(self.n_tables, self.dtype)
+        self.runtime.cl.enqueue_copy(self.runtime.queue, tables, self._grad)
+        grad = np.zeros(self.n_params)
+        grad[: self.n_tables] = tables
+        off = self.field.shared_offset
+        grad[off : off + len(shared)] = shared
+        return grad
+
+    def _reverse_pass(self, ob: np.ndarray, omb: np.ndarray, mu: np.ndarray) -> np.ndarray:
+        """The table entries' gradient into `_grad` on the device; the MLP's, summed."""
         cl, q = self.runtime.cl, self.runtime.queue
         res = self._columns(["ob", "omb", "mx", "my", "mz"], [ob, omb, *mu.T], False)
         n_vec = (self._n + self._pad) // self.lanes
@@ -159,16 +228,9 @@ class DevicePasses:
             self._grad,
             partial,
         )
-        tables = np.empty(self.n_tables, self.dtype)
         shared = np.empty(items * n_shared, self.dtype)
-        cl.enqueue_copy(q, tables, self._grad, is_blocking=False)
-        cl.enqueue_copy(q, shared, partial, is_blocking=False)
-        q.finish()
-        grad = np.zeros(self.n_params)
-        grad[: self.n_tables] = tables
-        off = self.field.shared_offset
-        grad[off : off + n_shared] = shared.reshape(items, n_shared).astype(np.float64).sum(0)
-        return grad
+        cl.enqueue_copy(q, shared, partial)
+        return shared.reshape(items, n_shared).astype(np.float64).sum(0)
 
     def _group(self, items: int):
         """Work-groups small enough for PoCL's stack (tracer.work_group_size)."""
