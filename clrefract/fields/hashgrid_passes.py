@@ -7,9 +7,9 @@ DevicePasses runs them as OpenCL kernels (kernels_cl/hashgrid_distil.cl) on a fi
 in its precision. Both take the same batches, so a distillation differs between them by
 rounding only. Each holds a distillation's parameters and Adam (`begin`, `train_step`,
 `result`): DevicePasses keeps them on the device (adam.DeviceAdam), so that a step sends it
-only its points, their residuals and the MLP's summed gradient, where a host Adam took a
-quarter of the quick sphere's refit moving the million table entries and their gradient
-across and updating them (tools/bench_distil.py).
+only its points, their residuals and the MLP's summed gradient: a host Adam spent a
+quarter of a float32 step moving the million table entries and their gradient across and
+updating them (tools/bench_distil.py).
 """
 
 from __future__ import annotations
@@ -105,7 +105,8 @@ class DevicePasses:
         self._fp = cl.Buffer(
             ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self._real(np.append(field.params(), 0))
         )
-        self._fd = cl.Buffer(ctx, mf.READ_ONLY, (self.n_params + 1) * self._itemsize)
+        # written by the device's Adam step (adam.cl) as well as read by the passes
+        self._fd = cl.Buffer(ctx, mf.READ_WRITE, (self.n_params + 1) * self._itemsize)
         # the kernel adds only table entries there (the MLP's gradient goes to `partial`, and
         # from the host into the rest for the device's Adam)
         self._grad = cl.Buffer(ctx, mf.READ_WRITE, self.n_params * self._itemsize)
