@@ -20,14 +20,18 @@ class ParamGroup:
     sparse: bool = False
 
 
+# the moments' decay rates and the denominator's floor, on the host and on a device alike
+BETA1, BETA2, EPS = 0.9, 0.99, 1e-15
+
+
 class Adam:
     def __init__(
         self,
         n: int,
         groups: list[ParamGroup],
-        beta1: float = 0.9,
-        beta2: float = 0.99,
-        eps: float = 1e-15,
+        beta1: float = BETA1,
+        beta2: float = BETA2,
+        eps: float = EPS,
     ):
         self.groups, self.beta1, self.beta2, self.eps = groups, beta1, beta2, eps
         self.m = np.zeros(n)
@@ -69,21 +73,11 @@ class DeviceAdam:
     (kernels_cl/adam.cl, built into the caller's program as `kernel`): a hash grid's
     distillation then keeps its million table entries off the host between steps."""
 
-    def __init__(
-        self,
-        runtime,
-        dtype,
-        kernel,
-        n: int,
-        groups: list[ParamGroup],
-        beta1: float = 0.9,
-        beta2: float = 0.99,
-        eps: float = 1e-15,
-    ):
+    def __init__(self, runtime, dtype, kernel, n: int, groups: list[ParamGroup]):
         cl, ctx, q = runtime.cl, runtime.context, runtime.queue
         self.queue, self.groups, self._k = q, groups, kernel
         self._real = np.dtype(dtype).type
-        self._consts = tuple(self._real(x) for x in (beta1, beta2, eps))
+        self._consts = tuple(self._real(x) for x in (BETA1, BETA2, EPS))
         n = max(n, 1)
         rw = cl.mem_flags.READ_WRITE
         self._m, self._v = (cl.Buffer(ctx, rw, n * np.dtype(dtype).itemsize) for _ in "mv")

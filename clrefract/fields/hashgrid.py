@@ -700,11 +700,8 @@ class HashGridField(Field):
             from .hashgrid_passes import DevicePasses
 
             with DevicePasses(self, *device) as passes:
-                o = [
-                    passes.forward(self.params_vec, pts[a : a + _CHUNK])[0]
-                    for a in range(0, len(pts), _CHUNK)
-                ]
-            fit = [1.0 + box_window(self.box, pts)[0] * self._output(np.concatenate(o))[0]]
+                o = passes.o_at(self.params_vec, pts, _CHUNK)
+            fit = [1.0 + box_window(self.box, pts)[0] * self._output(o)[0]]
         return float(np.sqrt(np.mean((np.concatenate(fit) - eta) ** 2)))
 
     def fit_values(

@@ -179,6 +179,13 @@ class DevicePasses:
         self._upload(params)
         return self._points_o(pts)
 
+    def o_at(self, params: np.ndarray, pts: np.ndarray, chunk: int) -> np.ndarray:
+        """o at many points, `chunk` a launch, the parameters uploaded once."""
+        self._upload(params)
+        return np.concatenate(
+            [self._points_o(pts[a : a + chunk])[0] for a in range(0, len(pts), chunk)]
+        )
+
     def _points_o(self, pts: np.ndarray):
         cl, q = self.runtime.cl, self.runtime.queue
         n = len(pts)
