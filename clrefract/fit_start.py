@@ -152,13 +152,15 @@ class HullStart:
                     shapes.append(self._best_shell(hull, idx, etas))
                 for name, shape, sigmas, pick in shapes:
                     # each shape's first smoothing searches index and offset jointly (a
-                    # shell: from its pick), the others near the shape's best pick
+                    # shell: from its pick), the others near the shape's best pick, up to
+                    # the first that scores no better: more only rounds the shape more
                     near = (np.inf, pick)
                     for sigma in shape.width * sigmas:
                         self._search_at = f"{name}|{sigma:.9g}"
                         trial = self._search_levelset(shape.smoothed(sigma), idx, etas, near[1])
-                        if trial[0] < near[0]:
-                            near = (trial[0], trial[1:3])
+                        if trial[0] >= near[0]:
+                            break
+                        near = (trial[0], trial[1:3])
                         if trial[0] < best[0]:
                             best = (*trial, float(sigma), name, shape)
                 loss, eta, offset, sigma, kind, hull = best

@@ -270,13 +270,14 @@ def test_hash_grid_output_follows_the_start_and_sets_step_and_eta_max():
 
 def test_hash_grid_from_the_hull_defaults_to_its_line_search_at_half_a_millimetre(tmp_path):
     """What a hash grid fits with unless told: the line search at a 0.5 mm interface, 32,768
-    rays a step, 16 steps, each validated; what a file or a flag says wins, and the resolved
-    values survive config.toml. Other fields and a start from empty space keep Adam at 1 mm."""
+    rays a step, 32 steps, each validated, the grid fitted to the best; what a file or a flag
+    says wins, and the resolved values survive config.toml. Other fields and a start from
+    empty space keep Adam at 1 mm."""
     from clrefract.fit import _toml
 
     hg = load_config(None, dict(field="hashgrid"))
     assert (hg.optimizer, hg.width, hg.step_mm) == ("line-search", 0.5, 0.125)
-    assert (hg.iterations, hg.line_batch, hg.validate_every) == (16, 32768, 1)
+    assert (hg.iterations, hg.line_batch, hg.validate_every, hg.refit) == (32, 32768, 1, "best")
     told = load_config(None, dict(field="hashgrid", width=1.0, optimizer="adam"))
     assert (told.width, told.iterations, told.validate_every) == (1.0, 600, 25)
     (tmp_path / "fit.toml").write_text('field = "hashgrid"\nline_batch = 4096\n')
