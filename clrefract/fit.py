@@ -115,7 +115,7 @@ class FitConfig:
     refit_iterations: int = 200
     # "best": a hash grid's line search validates the level set it moves, and the grid is
     # fitted to the best step once, at the end; "step": after every move taken, and the grid
-    # is validated (a refit and its validation were 2/3 of a step on the quick sphere)
+    # is validated (a refit and its validation were half of a step on the quick sphere)
     refit: str = "best"
     line_batch: int = 0  # mask rays a line-search step takes (0: batch, as the start's search)
     reg: float = 1e-4  # weight of the smoothness regulariser

@@ -36,11 +36,11 @@ from .tracer import Status
 
 # a refit starts where the grid is: its Adam rates a tenth of a fresh distillation's
 REFIT_RATE = 0.1
-# refit = "best": the one refit to the best step, from the start's fit, as (iterations,
-# rate) in turn. The quick sphere's level set after 30 steps renders 35.20 dB; the grid
-# fitted to it 34.20 after 800 at 0.3 (eta RMS 0.00054, 22 s), 34.36 after 1,600 more at
-# 0.1 (0.00036, 42 s), 33.59 fitted afresh as a start is (2,000 at 1.0)
-FINAL_REFIT = ((800, 0.3), (1600, 0.1))
+# refit = "best": the one refit to the best step, from the start's fit, as (iterations in
+# refit_iterations, rate) in turn. The quick sphere's level set after 30 steps renders
+# 35.20 dB; the grid fitted to it 34.20 after 800 at 0.3 (eta RMS 0.00054, 22 s), 34.36
+# after 1,600 more at 0.1 (0.00036, 42 s), 33.59 fitted afresh as a start is (2,000 at 1)
+FINAL_REFIT = ((4, 0.3), (8, 0.1))
 
 
 def check_line_search(cfg) -> None:
@@ -201,8 +201,8 @@ def refit_to_best(fit) -> dict | None:
     with on_guide(fit):
         set_params(fit, params)
     fit.set_eta_max(fit.best_eta_max or fit.eta_max)
-    for iterations, rate in FINAL_REFIT:
-        rms = refit(fit, iterations, rate)
+    for times, rate in FINAL_REFIT:
+        rms = refit(fit, times * fit.cfg.refit_iterations, rate)
     with on_guide(fit):
         set_params(fit, last)
     return {"iteration": it, "distilled_rms": rms, "seconds": time.perf_counter() - t0}
