@@ -317,11 +317,13 @@ def test_fit_steps_match_without_skipping(sphere_data, tmp_path, kind):
         assert b["steps_per_ray"] < a["steps_per_ray"] * 0.8
 
 
-def test_a_hash_grid_fit_skips_on_its_level_set_alone(sphere_data, tmp_path):
+@pytest.mark.parametrize("refit", ["best", "step"])
+def test_a_hash_grid_fit_skips_on_its_level_set_alone(sphere_data, tmp_path, refit):
     """From the hull, the start search and the line search trace the level set the hash
     grid follows: those rays skip empty space, the hash grid's own do not. In float64 the
     search scores every candidate as a run without skipping does (to rounding), and the
-    first step starts from the same loss."""
+    first step starts from the same loss. The validation skips too: the level set's with
+    refit = "best", the grid's (on an occupancy sampled from it) with "step"."""
     import io
     import json
 
@@ -334,7 +336,7 @@ def test_a_hash_grid_fit_skips_on_its_level_set_alone(sphere_data, tmp_path):
             dict(field="hashgrid", res=16, width=1.0, batch=1024, line_batch=1024,
                  precision="float64", skip_empty=skip, iterations=1, levels=4,
                  log2_table=12, hidden=8, distil_iterations=20, refit_iterations=10,
-                 tighten_hull=False, shell_starts=False, test_views=1),
+                 tighten_hull=False, shell_starts=False, test_views=1, refit=refit),
         )  # fmt: skip
         run = tmp_path / f"run{skip}"
         fit = prepare_fit(sphere_data, run, cfg, stream=io.StringIO())
@@ -346,8 +348,8 @@ def test_a_hash_grid_fit_skips_on_its_level_set_alone(sphere_data, tmp_path):
         first = json.loads((run / "metrics.jsonl").read_text().splitlines()[0])
         runs.append((losses, first["loss"], first["val_loss"]))
         # the grid's validation skips too, on an occupancy sampled from the grid
-        assert (fit._val_tracer is not None) is skip
-        if skip:
+        assert (fit._val_tracer is not None) is (skip and refit == "step")
+        if fit._val_tracer is not None:
             assert (fit._val_tracer.occupancy > 0).mean() > 0.3
     (plain, plain_step, plain_val), (skipped, skipped_step, skipped_val) = runs
     assert plain.keys() == skipped.keys() and len(plain) > 50
