@@ -101,8 +101,7 @@ class FitConfig:
     # line_steps mm along it; clrefract/fit_linesearch.py): from the quick sphere's start
     # at 0.5 mm, 8 steps of 60,000 rays took the test views from 31.98 to 33.59 dB
     # (tools/diag_tame_descent.py). A hash grid from the hull moves the level set it was
-    # distilled from that way, and is fitted to it again after each move (refit_iterations);
-    # it is that fit's default
+    # distilled from that way, and is fitted to it (`refit`); it is that fit's default
     optimizer: str = "adam"
     keep_growth: float = 10.0
     grad_sigma: float = 3.0

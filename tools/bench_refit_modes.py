@@ -21,7 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from clrefract.fit import load_config, prepare_fit
+from clrefract.fit import _toml, load_config, prepare_fit
 from clrefract.fit_linesearch import refit_to_best
 
 
@@ -32,8 +32,6 @@ def resumed(run: Path, dataset: Path, mode: str, scratch: Path):
     shutil.copytree(run, copy)
     cfg = load_config(copy / "config.toml", {})
     cfg.refit = mode
-    from clrefract.fit import _toml
-
     (copy / "config.toml").write_text(_toml(cfg))
     return prepare_fit(dataset, copy, None, resume=True, stream=io.StringIO())
 
