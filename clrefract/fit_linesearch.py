@@ -197,14 +197,13 @@ def refit_to_best(fit) -> dict | None:
     if it == 0:
         return None
     t0 = time.perf_counter()
-    last = fit.guide.params.copy()  # the run goes on from its last step (--resume)
-    with on_guide(fit):
-        set_params(fit, params)
+    # the refit samples the level set on the host: nothing to upload, and the guide's own
+    # parameters stay at its last step, where --resume goes on
+    fit.guide.field.set_data(params)
     fit.set_eta_max(fit.best_eta_max or fit.eta_max)
     for times, rate in FINAL_REFIT:
         rms = refit(fit, times * fit.cfg.refit_iterations, rate)
-    with on_guide(fit):
-        set_params(fit, last)
+    fit.guide.field.set_data(fit.guide.params)
     return {"iteration": it, "distilled_rms": rms, "seconds": time.perf_counter() - t0}
 
 
