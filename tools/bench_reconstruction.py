@@ -22,7 +22,7 @@ index beside the truth's.
         [--json bench_results/reconstruction.json] [--shard i/n] [--merge]
 
 --iterations defaults to the quick protocol's 100 Adam steps, or the fit's own count where
-its optimiser is the line search (a hash grid's default: 12); --width and --config's keys
+its optimiser is the line search (a hash grid's default: 32); --width and --config's keys
 default to the fit's.
 
 --shard i/n runs every n-th scene from the i-th and writes reconstruction.shard-i-of-n.json
