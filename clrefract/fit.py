@@ -97,14 +97,15 @@ class FitConfig:
     lr_mlp: float = 1e-4
     lr_final: float = 0.1  # learning rates decay exponentially to this fraction
     # "adam", or "line-search" (level sets: each step keeps the rays whose adjoint grows at
-    # most keep_growth, smooths the phi gradient by grad_sigma cells and takes the best of
-    # line_steps mm along it; clrefract/fit_linesearch.py): from the quick sphere's start
+    # most keep_growth, smooths the phi gradient over the grad_sigma scales (cells, each
+    # weighted by its square) and takes the best of line_steps mm along it;
+    # clrefract/fit_linesearch.py): from the quick sphere's start
     # at 0.5 mm, 8 steps of 60,000 rays took the test views from 31.98 to 33.59 dB
     # (tools/diag_tame_descent.py). A hash grid from the hull moves the level set it was
     # distilled from that way, and is fitted to it (`refit`); it is that fit's default
     optimizer: str = "adam"
     keep_growth: float = 10.0
-    grad_sigma: float = 3.0
+    grad_sigma: tuple = (3.0, 6.0, 12.0)
     line_steps: tuple = (0.003, 0.01, 0.03, 0.1)
     # index moves a line-search step tries after its shape move, down the kept rays' index
     # gradient (the best, or none); (): the index stays the start's
@@ -373,8 +374,8 @@ def load_config(path: Path | None, overrides: dict) -> FitConfig:
             raise ClrefractError(f"unknown config key {k!r} (known: {', '.join(known)})")
         default = getattr(cfg, k)
         try:
-            if isinstance(default, tuple):  # a string is one value ("x,y,z,..."), not letters
-                v = (v,) if isinstance(v, str) else tuple(v)
+            if isinstance(default, tuple):  # a string or a number is one value, not letters
+                v = (v,) if isinstance(v, str | int | float) else tuple(v)
             else:
                 v = type(default)(v)
         except (TypeError, ValueError):

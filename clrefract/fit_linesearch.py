@@ -11,8 +11,17 @@ which the test views punish; a Gaussian of a few grid cells keeps the moves that
 
 Each step: the loss and adjoint gradient of a batch of rays through the masks; the rays
 that exit with an adjoint growth of at most `keep_growth` are kept and their gradient taken
-again; its phi part is smoothed by `grad_sigma` cells; phi moves by the move in `line_steps`
-(the largest node move, mm) that lowers the kept rays' loss most, or stays. With
+again; its phi part is smoothed over the scales of `grad_sigma` (cells); phi moves by the move
+in `line_steps` (the largest node move, mm) that lowers the kept rays' loss most, or stays.
+
+The smoothing is a sum of Gaussians of sigma = 3, 6 and 12 cells weighted by sigma^2: the
+larger a shape's error, the more of it one step corrects. A gradient smoothed at one scale
+moves a surface's broad errors (a sphere a few tenths of a millimetre too large, a face
+tilted) as slowly as its ripples, the way plain gradient descent crawls along the low
+frequencies of a Laplacian; weights that grow as sigma^2 approximate the inverse of it (a
+Sobolev gradient, as in "large steps" remeshing). On the quick sphere's start, 32 steps
+took the held-out loss to 0.0018-0.0019 with the three scales and to 0.0020-0.0023 with
+3 cells alone, and the test views to 34.91 dB (+3.22) against 34.59 (+2.90). With
 `index_steps`, the index then moves down its gradient by the best of them, or stays (the
 start searched it with the hull's shape, which a wrong normal makes look like another index).
 
@@ -63,8 +72,7 @@ def check_line_search(cfg) -> None:
         raise ClrefractError(f"refit must be 'best' or 'step', got {cfg.refit!r}")
     if not (cfg.keep_growth > 1 and np.isfinite(cfg.keep_growth)):
         raise ClrefractError(f"keep_growth must be above 1, got {cfg.keep_growth}")
-    if not (cfg.grad_sigma >= 0 and np.isfinite(cfg.grad_sigma)):
-        raise ClrefractError(f"grad_sigma must be >= 0 (0: no smoothing), got {cfg.grad_sigma}")
+    cfg.grad_sigma = smoothing_scales(cfg.grad_sigma)
     try:
         steps = tuple(float(s) for s in cfg.line_steps)
     except (TypeError, ValueError):
@@ -87,12 +95,36 @@ def check_line_search(cfg) -> None:
         )
 
 
-def smoothed(grad_phi: np.ndarray, shape: tuple, sigma: float) -> np.ndarray:
-    """The phi gradient smoothed by a Gaussian of sigma grid cells (edge values extended)."""
-    if sigma <= 0:
-        return grad_phi
+def smoothing_scales(value) -> tuple:
+    """grad_sigma as a tuple of scales in cells: one number, or a list of them (0 alone: no
+    smoothing)."""
+    scales = value if isinstance(value, (list, tuple)) else (value,)
+    try:
+        scales = tuple(float(s) for s in scales)
+    except (TypeError, ValueError):
+        scales = ()
+    if not scales or not all(s >= 0 and np.isfinite(s) for s in scales):
+        raise ClrefractError(
+            f"grad_sigma must be one or more scales >= 0 in cells (0: no smoothing), got {value}"
+        )
+    return scales
+
+
+def smoothed(grad_phi: np.ndarray, shape: tuple, sigma) -> np.ndarray:
+    """The phi gradient smoothed by a Gaussian of sigma grid cells (edge values extended);
+    with several scales, the sum of their smoothings weighted by sigma^2 (a scale of 0 adds
+    the gradient itself, weighted 1)."""
+    scales = sigma if isinstance(sigma, (list, tuple)) else (sigma,)
+    if len(scales) == 1:
+        return grad_phi if scales[0] <= 0 else _gaussian(grad_phi, shape, scales[0])
+    return sum(_gaussian(grad_phi, shape, s) * (s * s if s > 0 else 1.0) for s in scales)
+
+
+def _gaussian(grad_phi: np.ndarray, shape: tuple, sigma: float) -> np.ndarray:
     from scipy.ndimage import gaussian_filter
 
+    if sigma <= 0:
+        return grad_phi
     return gaussian_filter(grad_phi.reshape(shape), sigma, mode="nearest").ravel()
 
 

@@ -19,7 +19,9 @@ from clrefract.fit import LINE_SEARCH_ITERATIONS, load_config
         (dict(line_batch=-1), "line_batch must be >= 0"),
         (dict(refit_iterations=0), "refit_iterations must be at least 1"),
         (dict(keep_growth=1.0), "keep_growth must be above 1"),
-        (dict(grad_sigma=-1.0), "grad_sigma must be >= 0"),
+        (dict(grad_sigma=-1.0), "grad_sigma must be one or more scales >= 0"),
+        (dict(grad_sigma=(3.0, "x")), "grad_sigma must be one or more scales >= 0"),
+        (dict(grad_sigma=()), "grad_sigma must be one or more scales >= 0"),
         (dict(line_steps=()), "line_steps must be positive"),
         (dict(line_steps=("a",)), "line_steps must be positive"),
         (dict(line_steps=(0.01, -0.1)), "line_steps must be positive"),
@@ -57,6 +59,33 @@ def test_smoothing_keeps_the_gradients_sum_and_spreads_a_spike():
     assert s[16, 16, 16] == pytest.approx(0.00794, rel=0.02)
     assert s[16, 16, 20] == pytest.approx(np.exp(-2) * s[16, 16, 16], rel=0.02)
     assert np.array_equal(smoothed(g.ravel(), g.shape, 0.0), g.ravel())
+
+
+def test_several_scales_weigh_broad_errors_by_their_size(tmp_path):
+    """grad_sigma's scales sum their smoothings weighted by sigma^2: a gradient that is the
+    same everywhere (a uniform growth of the surface) comes out sum(sigma^2) times itself,
+    a spike about once (each Gaussian's peak times sigma^2 falls as 1 / sigma): broad errors
+    move faster than ripples. A single number, as the config files of earlier runs hold,
+    is one scale."""
+    from clrefract.fit_linesearch import smoothed
+
+    shape = (32, 32, 32)
+    flat = np.ones(int(np.prod(shape)))
+    scales = (3.0, 6.0, 12.0)
+    assert np.allclose(smoothed(flat, shape, scales), 9 + 36 + 144)
+    spike = np.zeros(shape)
+    spike[16, 16, 16] = 1.0
+    peak = smoothed(spike.ravel(), shape, scales).reshape(shape)[16, 16, 16]
+    expected = sum(s * s * (2 * np.pi * s * s) ** -1.5 for s in scales)
+    assert peak == pytest.approx(expected, rel=0.03)
+    assert peak < 0.01 * (9 + 36 + 144)
+    line = dict(field="levelset", optimizer="line-search")
+    assert load_config(None, line).grad_sigma == scales
+    toml = tmp_path / "config.toml"
+    toml.write_text('field = "levelset"\noptimizer = "line-search"\ngrad_sigma = 3.0\n')
+    assert load_config(toml, {}).grad_sigma == (3.0,)
+    toml.write_text('field = "levelset"\noptimizer = "line-search"\ngrad_sigma = [2, 4]\n')
+    assert load_config(toml, {}).grad_sigma == (2.0, 4.0)
 
 
 def _sphere_run(tmp_path, **overrides):
