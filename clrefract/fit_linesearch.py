@@ -116,7 +116,7 @@ def smoothed(grad_phi: np.ndarray, shape: tuple, sigma) -> np.ndarray:
     the gradient itself, weighted 1)."""
     scales = sigma if isinstance(sigma, (list, tuple)) else (sigma,)
     if len(scales) == 1:
-        return grad_phi if scales[0] <= 0 else _gaussian(grad_phi, shape, scales[0])
+        return _gaussian(grad_phi, shape, scales[0])
     return sum(_gaussian(grad_phi, shape, s) * (s * s if s > 0 else 1.0) for s in scales)
 
 

@@ -5,13 +5,14 @@ would compare their starts too: near-equal candidates of the start's search trad
 between runs (the backward pass's float atomics).
 
     python tools/bench_line_search.py DATASET [--start RUN] [--iterations 32]
-        [--variants "sigma3:grad_sigma=3" "scales:grad_sigma=3,6,12"]
+        [--variants "sigma3:grad_sigma=3" "scales:grad_sigma=[3,6,12]"]
         [--out bench_results/line_search] [--json bench_results/line_search.json]
 
 Without --start, a hash grid's start from the hull is made first (OUT/start, with the fit's
-defaults). A variant is NAME:KEY=VALUE;KEY=VALUE with FitConfig keys (a comma list is a
-tuple). Prints, per variant: the held-out loss at each quarter of the steps and its best, the test
-PSNR / SSIM / chamfer of the start and of the fit, the gain, and the time per step.
+defaults). A variant is NAME:KEY=VALUE;KEY=VALUE with FitConfig keys and TOML values, as
+in a config file. Prints, per variant: the held-out loss at each quarter of the steps and
+its best, the test PSNR / SSIM / chamfer of the start and of the fit, the gain, and the
+time per step.
 """
 
 from __future__ import annotations
@@ -29,26 +30,28 @@ import numpy as np
 from clrefract.errors import ClrefractError
 from clrefract.fit import _toml, load_config, prepare_fit
 
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
+
 
 def parse_variant(text: str) -> tuple[str, dict]:
-    """'name:key=value;key=value' -> (name, {key: value}); a comma list is a tuple."""
+    """'name:key=value;key=value' -> (name, {key: value}), the values read as TOML."""
     name, _, body = text.partition(":")
-    settings = {}
-    for item in filter(None, body.split(";")):
-        key, _, value = item.partition("=")
-        parts = [_value(v) for v in value.split(",")]
-        settings[key.strip()] = tuple(parts) if "," in value else parts[0]
-    return name, settings
+    try:
+        return name, tomllib.loads(body.replace(";", "\n"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ClrefractError(f"variant {text!r}: {exc}") from None
 
 
-def _value(text: str):
-    text = text.strip()
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return text
+def resumed_copy(run: Path, dataset: Path, copy: Path, settings: dict):
+    """A fresh copy of the run folder `run`, resumed with `settings` over its config."""
+    shutil.rmtree(copy, ignore_errors=True)
+    shutil.copytree(run, copy)
+    cfg = load_config(copy / "config.toml", settings)
+    (copy / "config.toml").write_text(_toml(cfg))
+    return prepare_fit(dataset, copy, None, resume=True, stream=io.StringIO())
 
 
 def make_start(dataset: Path, out: Path, iterations: int) -> Path:
@@ -60,11 +63,7 @@ def make_start(dataset: Path, out: Path, iterations: int) -> Path:
 
 
 def run_variant(start: Path, dataset: Path, out: Path, iterations: int, settings: dict) -> dict:
-    shutil.rmtree(out, ignore_errors=True)
-    shutil.copytree(start, out)
-    cfg = load_config(out / "config.toml", {**settings, "iterations": iterations})
-    (out / "config.toml").write_text(_toml(cfg))
-    fit = prepare_fit(dataset, out, None, resume=True, stream=io.StringIO())
+    fit = resumed_copy(start, dataset, out, {**settings, "iterations": iterations})
     if fit.it != 0:
         raise ClrefractError(f"{start}: its checkpoint is at step {fit.it}, not at its start")
     t0 = time.perf_counter()
@@ -75,7 +74,7 @@ def run_variant(start: Path, dataset: Path, out: Path, iterations: int, settings
     step_s = [r["seconds"] for r in rows if "seconds" in r]
     start_scores = json.loads((out / "start.json").read_text())
     return {
-        "settings": {k: list(v) if isinstance(v, tuple) else v for k, v in settings.items()},
+        "settings": settings,
         "val_loss": val,
         "best_val_loss": result.get("best_val_loss"),
         "best_iteration": result.get("best_iteration"),
@@ -113,7 +112,7 @@ def main() -> None:
     ap.add_argument("--start", type=Path, help="a run folder whose checkpoint is its start")
     ap.add_argument("--iterations", type=int, default=32)
     ap.add_argument(
-        "--variants", nargs="+", default=["sigma3:grad_sigma=3", "scales:grad_sigma=3,6,12"]
+        "--variants", nargs="+", default=["sigma3:grad_sigma=3", "scales:grad_sigma=[3,6,12]"]
     )
     ap.add_argument("--out", type=Path, default=Path("bench_results/line_search"))
     ap.add_argument("--json", default="bench_results/line_search.json")

@@ -14,26 +14,14 @@ RUN is a hash-grid run folder from the hull (e.g. one of tools/bench_reconstruct
 from __future__ import annotations
 
 import argparse
-import io
 import json
-import shutil
 import tempfile
 import time
 from pathlib import Path
 
-from clrefract.fit import _toml, load_config, prepare_fit
+from bench_line_search import resumed_copy
+
 from clrefract.fit_linesearch import refit_to_best
-
-
-def resumed(run: Path, dataset: Path, mode: str, scratch: Path):
-    """A copy of `run`, resumed with `refit = mode`."""
-    copy = scratch / mode
-    shutil.rmtree(copy, ignore_errors=True)
-    shutil.copytree(run, copy)
-    cfg = load_config(copy / "config.toml", {})
-    cfg.refit = mode
-    (copy / "config.toml").write_text(_toml(cfg))
-    return prepare_fit(dataset, copy, None, resume=True, stream=io.StringIO())
 
 
 def main() -> None:
@@ -48,7 +36,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.rounds):
             for mode in ("step", "best"):
-                fit = resumed(args.run, args.dataset, mode, Path(tmp))
+                fit = resumed_copy(args.run, args.dataset, Path(tmp) / mode, {"refit": mode})
                 fit.cfg.iterations = fit.it + args.steps
                 for _ in range(args.steps):
                     t0 = time.perf_counter()
