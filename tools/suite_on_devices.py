@@ -4,7 +4,7 @@ a table of device against pass / fail.
 Each test file runs in its own pytest process with PYOPENCL_CTX naming the device, under a
 time limit, so one stalling file costs only itself. Files run `--jobs` at a time.
 
-    python tools/suite_on_devices.py [--devices 0:0 1:0] [--jobs 2] [--timeout 900]
+    python tools/suite_on_devices.py [--devices 0:0 1:0] [--jobs 2] [--timeout 900] [--budget S]
                                      [--json bench_results/suite_on_devices.json] [tests/...]
 """
 
@@ -17,8 +17,7 @@ import re
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
-from itertools import repeat
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 from clrefract.limits import host_cores
@@ -28,10 +27,12 @@ ROOT = Path(__file__).resolve().parents[1]
 COUNTS = re.compile(r"(\d+) (passed|failed|errors?|skipped|xfailed|xpassed|deselected)")
 
 
-def run_file(path: str, selector: str, timeout: float) -> dict:
+def run_file(path: str, selector: str, timeout: float, deadline: float) -> dict:
     env = dict(os.environ, PYOPENCL_CTX=selector, PYTHONUNBUFFERED="1")
     cmd = [sys.executable, "-m", "pytest", "-q", "-rfE", "-p", "no:cacheprovider", path]
     t0 = time.perf_counter()
+    # a file queued behind slow ones gets what is left of the whole run's budget
+    timeout = max(1.0, min(timeout, deadline - t0))
     try:
         done = subprocess.run(
             cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
@@ -61,12 +62,39 @@ def run_file(path: str, selector: str, timeout: float) -> dict:
     }
 
 
+def report(r: dict) -> None:
+    flag = "TIMEOUT" if r["timed_out"] else ("ok" if not r["failures"] else "FAIL")
+    print(
+        f"  {r['file']:<40} {r['passed']:4d} passed {r['failed']:3d} failed "
+        f"{r['seconds']:7.1f} s  {flag}",
+        flush=True,
+    )
+    for line in r["failures"]:
+        print(f"      {line[:220]}", flush=True)
+
+
+def longest_first(files: list[str], previous: Path) -> list[str]:
+    """Slow files first, so that none starts last and holds the run: by the seconds a
+    previous run's JSON recorded, else by the file's size."""
+    seconds: dict[str, float] = {}
+    try:
+        for row in json.loads(previous.read_text()):
+            for f in row.get("files", []):
+                seconds[f["file"]] = max(seconds.get(f["file"], 0.0), f["seconds"])
+    except (OSError, ValueError, TypeError, KeyError):
+        pass
+    return sorted(files, key=lambda f: -seconds.get(f, (ROOT / f).stat().st_size / 100.0))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("files", nargs="*", help="test files (default: tests/test_*.py)")
     ap.add_argument("--devices", nargs="*", help="P:D selectors (default: every device)")
     ap.add_argument("--jobs", type=int, default=max(1, host_cores() // 2))
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per test file")
+    ap.add_argument(
+        "--budget", type=float, default=0.0, help="seconds for each device's whole run (0: none)"
+    )
     ap.add_argument("--json", default="bench_results/suite_on_devices.json")
     ap.add_argument("--logs", help="folder for each file's pytest output")
     args = ap.parse_args()
@@ -82,6 +110,7 @@ def main() -> int:
         print(f"Unknown device {', '.join(unknown)}. Devices:\n{listing}", file=sys.stderr)
         return 2
     files = args.files or sorted(str(p.relative_to(ROOT)) for p in ROOT.glob("tests/test_*.py"))
+    files = longest_first(files, Path(args.json))
 
     rows = []
     for sel in chosen:
@@ -92,21 +121,20 @@ def main() -> int:
             flush=True,
         )
         t0 = time.perf_counter()
-        with ThreadPoolExecutor(args.jobs) as pool:
-            results = list(pool.map(run_file, files, repeat(sel), repeat(args.timeout)))
-        for r in results:
-            flag = "TIMEOUT" if r["timed_out"] else ("ok" if not r["failures"] else "FAIL")
-            print(
-                f"  {r['file']:<40} {r['passed']:4d} passed {r['failed']:3d} failed "
-                f"{r['seconds']:7.1f} s  {flag}"
-            )
-            for line in r["failures"]:
-                print(f"      {line[:220]}")
-        if args.logs:
-            logs = Path(args.logs) / sel.replace(":", "_")
+        deadline = t0 + args.budget if args.budget > 0 else float("inf")
+        logs = Path(args.logs) / sel.replace(":", "_") if args.logs else None
+        if logs:
             logs.mkdir(parents=True, exist_ok=True)
-            for r in results:
-                (logs / (Path(r["file"]).stem + ".log")).write_text(r["log"])
+        results = []
+        with ThreadPoolExecutor(args.jobs) as pool:
+            jobs = [pool.submit(run_file, f, sel, args.timeout, deadline) for f in files]
+            for job in as_completed(jobs):  # each file reported as it ends
+                r = job.result()
+                results.append(r)
+                report(r)
+                if logs:
+                    (logs / (Path(r["file"]).stem + ".log")).write_text(r["log"])
+        results.sort(key=lambda r: r["file"])
         total = {k: sum(r[k] for r in results) for k in ("passed", "failed", "errors", "skipped")}
         rows.append(
             {
