@@ -147,6 +147,34 @@ HG_INLINE void hg_scatter(__global REAL *grad, const int l, const uint *idx, con
     realv ix = SEL(RV(0), RV(1), ux == cx), iy = SEL(RV(0), RV(1), uy == cy),                \
           iz = SEL(RV(0), RV(1), uz == cz);
 
+/* Corner weights of level l at the (clamped, normalised) points: table indices idx, weight
+ * cw and its gradient (cgx cgy cgz), for the 8 corners. hashgrid_adjoint.cl's hg_corners2
+ * adds Hess(weight) mu; the two are written alike, with selects and no per-axis arrays
+ * (NVIDIA's driver computed the features of 8 or more levels wrong from the per-axis
+ * two-element arrays this replaces, and the adjoint's encoding right). */
+HG_INLINE void hg_corners(FIELD_PARAMS, const int l, realv cx, realv cy, realv cz, realv ix,
+                          realv iy, realv iz, uint *idx, realv *cw, realv *cgx, realv *cgy,
+                          realv *cgz) {
+    const REAL sx_ = (REAL)BOX_HI_X - (REAL)BOX_LO_X, sy_ = (REAL)BOX_HI_Y - (REAL)BOX_LO_Y,
+               sz_ = (REAL)BOX_HI_Z - (REAL)BOX_LO_Z;
+    const REAL n = fp[1 + l];
+    realv sx, sy, sz, dsx, dsy, dsz, unused;
+    hg_uintv i = hg_axis(cx, ix, n, n / sx_, &sx, &dsx, &unused);
+    hg_uintv j = hg_axis(cy, iy, n, n / sy_, &sy, &dsy, &unused);
+    hg_uintv k = hg_axis(cz, iz, n, n / sz_, &sz, &dsz, &unused);
+    hg_indices(fp, l, n, i, j, k, idx);
+    for (int c = 0; c < 8; ++c) {
+        const REAL a = (c >> 2) ? 1 : -1, b = ((c >> 1) & 1) ? 1 : -1, d = (c & 1) ? 1 : -1;
+        realv Ax = (c >> 2) ? sx : RV(1) - sx, Ay = ((c >> 1) & 1) ? sy : RV(1) - sy,
+              Az = (c & 1) ? sz : RV(1) - sz;
+        realv ayz = Ay * Az;
+        cw[c] = Ax * ayz;
+        cgx[c] = (a * dsx) * ayz;
+        cgy[c] = Ax * (b * dsy) * Az;
+        cgz[c] = Ax * Ay * (d * dsz);
+    }
+}
+
 /* The L*F features of the LANES points and their x, y, z derivatives. Index and weight
  * arithmetic runs on the vectors; the table gather is scalar, lane by lane (hg_gather). */
 HG_INLINE void hg_encode(FIELD_PARAMS, realv x, realv y, realv z, realv *feat, realv *fx,
@@ -155,37 +183,23 @@ HG_INLINE void hg_encode(FIELD_PARAMS, realv x, realv y, realv z, realv *feat, r
     for (int l = 0; l < HG_LEVELS; ++l) {
         uint idx[8 * LANES];
         REAL vals[8 * HG_FEATURES * LANES];
-        const REAL n = fp[1 + l];
-        realv sx, sy, sz, dsx, dsy, dsz, unused;
-        hg_uintv i = hg_axis(cx, ix, n, n / sx_, &sx, &dsx, &unused);
-        hg_uintv j = hg_axis(cy, iy, n, n / sy_, &sy, &dsy, &unused);
-        hg_uintv k = hg_axis(cz, iz, n, n / sz_, &sz, &dsz, &unused);
-        hg_indices(fp, l, n, i, j, k, idx);
+        realv cw[8], cgx[8], cgy[8], cgz[8];
+        hg_corners(FIELD_ARGS, l, cx, cy, cz, ix, iy, iz, idx, cw, cgx, cgy, cgz);
         hg_gather(fd, l, idx, vals);
-        realv ax[2] = {RV(1) - sx, sx}, ay[2] = {RV(1) - sy, sy}, az[2] = {RV(1) - sz, sz};
-        realv dx[2] = {-dsx, dsx}, dy[2] = {-dsy, dsy}, dz[2] = {-dsz, dsz};
-        realv v[HG_FEATURES], gx[HG_FEATURES], gy[HG_FEATURES], gz[HG_FEATURES];
-        for (int f = 0; f < HG_FEATURES; ++f)
-            v[f] = gx[f] = gy[f] = gz[f] = RV(0);
-        for (int c = 0; c < 8; ++c) {
-            const int a = c >> 2, b = (c >> 1) & 1, d = c & 1;
-            realv wyz = ay[b] * az[d], axa = ax[a];
-            realv w = axa * wyz, wx = dx[a] * wyz, wy = axa * dy[b] * az[d],
-                  wz = axa * ay[b] * dz[d];
-            for (int f = 0; f < HG_FEATURES; ++f) {
-                realv t = VLOAD(c * HG_FEATURES + f, vals);
-                v[f] += w * t;
-                gx[f] += wx * t;
-                gy[f] += wy * t;
-                gz[f] += wz * t;
+        for (int q = 0; q < HG_FEATURES; ++q) {
+            realv v = RV(0), gx = RV(0), gy = RV(0), gz = RV(0);
+            for (int c = 0; c < 8; ++c) {
+                realv t = VLOAD(c * HG_FEATURES + q, vals);
+                v += cw[c] * t;
+                gx += cgx[c] * t;
+                gy += cgy[c] * t;
+                gz += cgz[c] * t;
             }
-        }
-        for (int f = 0; f < HG_FEATURES; ++f) {
-            const int o = l * HG_FEATURES + f;
-            feat[o] = v[f];
-            fx[o] = gx[f];
-            fy[o] = gy[f];
-            fz[o] = gz[f];
+            const int o = l * HG_FEATURES + q;
+            feat[o] = v;
+            fx[o] = gx;
+            fy[o] = gy;
+            fz[o] = gz;
         }
     }
 }

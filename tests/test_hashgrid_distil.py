@@ -27,7 +27,7 @@ def both_passes(field, precision, lanes, pts, res):
     return ref, got
 
 
-@pytest.mark.parametrize("name", ["smoothstep", "trilinear", "ramp", "one-layer"])
+@pytest.mark.parametrize("name", ["smoothstep", "trilinear", "ramp", "one-layer", "eight-levels"])
 @pytest.mark.parametrize("lanes", [1, 16])
 def test_device_passes_match_the_numpy_reference_in_float64(name, lanes, monkeypatch):
     """Points inside, in the window's ramp and outside the box (clamped), a count that is
@@ -42,6 +42,19 @@ def test_device_passes_match_the_numpy_reference_in_float64(name, lanes, monkeyp
     assert np.abs(g[:n_tab]).max() > 0 and np.abs(g[n_tab:]).max() > 0
     assert np.abs(o1 - o).max() < 1e-12 * np.abs(o).max()
     assert np.abs(og1 - og).max() < 1e-12 * np.abs(og).max()
+    assert np.abs(g1 - g).max() < 1e-12 * np.abs(g).max()
+
+
+def test_one_lane_on_a_cpu_runs_in_small_work_groups():
+    """8,192 points at one lane: PoCL's own choice of work-group put thousands of copies of
+    the encoding's arrays on one thread's stack and crashed the process (a GPU's layout on
+    a CPU); tracer.work_group_size keeps groups at 32 there whatever the lanes."""
+    field = HashGridField(
+        HashGridConfig(levels=8, log2_table=16, n_min=8, n_max=64, hidden=32), BOX
+    )
+    pts = inner_points(8192, seed=4)
+    (o, og, g), (o1, og1, g1) = both_passes(field, "float64", 1, pts, residuals(8192))
+    assert np.abs(o1 - o).max() < 1e-12 * np.abs(o).max()
     assert np.abs(g1 - g).max() < 1e-12 * np.abs(g).max()
 
 

@@ -92,6 +92,9 @@ class Field:
     source: str = ""
     # the most lanes its kernels give right answers at on devices other than CPUs (None: any)
     gpu_lanes: int | None = None
+    # its kernels are checked against eval() once per device and build (device_check.py): a
+    # driver has computed them wrong where it computed the others right
+    device_checked: bool = False
 
     def lanes_on(self, runtime, lanes: int) -> int:
         """`lanes`, capped at gpu_lanes on a device that is not a CPU."""

@@ -267,6 +267,7 @@ class HashGridField(Field):
     kind = "hashgrid"
     source = "field_hashgrid.cl"
     adjoint_source = "hashgrid_adjoint.cl"
+    device_checked = True
     # NVIDIA's OpenCL compiler (driver 580, H100) gets eta wrong by about 1e-2 and the
     # gradient non-finite in the 4- to 16-lane kernels, which PoCL runs right; one lane, a
     # GPU's own layout, matches the reference (tools/suite_on_devices.py).

@@ -18,6 +18,7 @@ from contextlib import ExitStack
 
 import numpy as np
 
+from ..device_check import check_once, check_points
 from ..limits import host_threads
 from ..tracer import work_group_size
 
@@ -112,6 +113,15 @@ class DevicePasses:
         self._grad = cl.Buffer(ctx, mf.READ_WRITE, self.n_params * self._itemsize)
         self._bufs = {}
         self._adam = None
+        pts = check_points(field.box)
+        p = field.params_vec
+        check_once(
+            runtime,
+            (tuple(sources), tuple(sorted(map(str, defines.items())))),
+            precision,
+            "the hash grid's MLP output (distillation)",
+            lambda: (self.forward(p, pts)[0], field._forward2(pts, None, p, False)[0]),
+        )
 
     def __enter__(self):
         return self
@@ -242,7 +252,7 @@ class DevicePasses:
 
     def _group(self, items: int):
         """Work-groups small enough for PoCL's stack (tracer.work_group_size)."""
-        g = work_group_size(items, self.lanes)
+        g = work_group_size(items, self.runtime.info.kind == "cpu")
         return None if g is None else (g,)
 
     @property
