@@ -129,6 +129,8 @@ CONFIGS = {
     # one hidden layer, width not a multiple of 4, three features per level
     "one-layer": {**SMALL, "hidden": 10, "features": 3, "layers": 1},
     "ramp": {**SMALL, "output": "ramp"},
+    # a fit's number of levels (NVIDIA's driver got the forward encoding of 8 wrong, 4 right)
+    "eight-levels": {**SMALL, "levels": 8, "n_max": 64},
 }
 
 
@@ -141,6 +143,8 @@ CONFIGS = {
         ("one-layer", "float64", 4, 1e-10),
         ("ramp", "float64", 8, 1e-10),
         ("ramp", "float32", 16, 2e-4),
+        ("eight-levels", "float64", 1, 1e-10),
+        ("eight-levels", "float32", 1, 2e-4),
     ],
 )
 def test_kernel_adjoint_terms_match_the_reference(name, precision, lanes, tol):
