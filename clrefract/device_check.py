@@ -8,6 +8,8 @@ evaluated both ways when a program is first used turn that into an error naming 
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 from .errors import ClrefractError
@@ -16,7 +18,7 @@ CHECK_POINTS = 64
 # relative to the reference's largest value (at least 1): float32 rounds the kernels'
 # answers to about 1e-6 of it, the failures seen were 1e-2 and more
 TOLERANCE = {"float32": 1e-4, "float64": 1e-9}
-_passed: set = set()
+_passed: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # runtime -> program keys
 
 
 def check_points(box, n: int = CHECK_POINTS) -> np.ndarray:
@@ -29,8 +31,8 @@ def check_points(box, n: int = CHECK_POINTS) -> np.ndarray:
 def check_once(runtime, key, precision: str, what: str, compute) -> None:
     """Run `compute()` -> (device's values, NumPy's) the first time this runtime meets this
     program `key`, and refuse the device if they differ by more than rounding."""
-    token = (id(runtime), key)
-    if token in _passed:
+    passed = _passed.setdefault(runtime, set())
+    if key in passed:
         return
     got, ref = (np.asarray(a, np.float64) for a in compute())
     scale = max(1.0, float(np.abs(ref).max()))
@@ -45,4 +47,4 @@ def check_once(runtime, key, precision: str, what: str, compute) -> None:
             "driver miscompiles these kernels. Use another device (`clrefract devices` "
             "lists them; --device P:D)"
         )
-    _passed.add(token)
+    passed.add(key)
