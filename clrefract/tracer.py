@@ -207,7 +207,9 @@ class Tracer:
         self.launch_bytes = 0  # device buffers the last launch used (bench's memory column)
         self.upload_field()
         if field.device_checked:
-            self._check_kernels((tuple(sources), tuple(sorted(map(str, defines.items())))))
+            self._check_kernels(
+                (tuple(sources), tuple(sorted(map(str, defines.items()))), precision)
+            )
         if self.skip_empty:
             self.set_occupancy(self.field_occupancy() if occupancy is None else occupancy)
 

@@ -73,4 +73,5 @@ def test_each_build_is_checked_once(monkeypatch):
     for _ in range(3):
         Tracer(FIELDS["eight-levels"], BOX, precision="float32")
     Tracer(FIELDS["smoothstep"], BOX, precision="float32")
-    assert len(calls) == 2
+    Tracer(FIELDS["smoothstep"], BOX, precision="float64")  # another build
+    assert len(calls) == 3

@@ -117,7 +117,7 @@ class DevicePasses:
         p = field.params_vec
         check_once(
             runtime,
-            (tuple(sources), tuple(sorted(map(str, defines.items())))),
+            (tuple(sources), tuple(sorted(map(str, defines.items()))), precision),
             precision,
             "the hash grid's MLP output (distillation)",
             lambda: (self.forward(p, pts)[0], field._forward2(pts, None, p, False)[0]),
