@@ -18,7 +18,7 @@ CHECK_POINTS = 64
 # relative to the reference's largest value (at least 1): float32 rounds the kernels'
 # answers to about 1e-6 of it, the failures seen were 1e-2 and more
 TOLERANCE = {"float32": 1e-4, "float64": 1e-9}
-_passed: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # runtime -> program keys
+_passed: weakref.WeakSet = weakref.WeakSet()  # built programs (runtime.Kernels) that passed
 
 
 def check_points(box, n: int = CHECK_POINTS) -> np.ndarray:
@@ -28,11 +28,11 @@ def check_points(box, n: int = CHECK_POINTS) -> np.ndarray:
     return np.random.default_rng(12345).uniform(lo, hi, (n, 3))
 
 
-def check_once(runtime, key, precision: str, what: str, compute) -> None:
-    """Run `compute()` -> (device's values, NumPy's) the first time this runtime meets this
-    program `key`, and refuse the device if they differ by more than rounding."""
-    passed = _passed.setdefault(runtime, set())
-    if key in passed:
+def check_once(runtime, program, precision: str, what: str, compute) -> None:
+    """Run `compute()` -> (device's values, NumPy's) the first time `program` (runtime.build's,
+    which builds each source, defines and precision once) is used, and refuse the device if
+    they differ by more than rounding."""
+    if program in _passed:
         return
     got, ref = (np.asarray(a, np.float64) for a in compute())
     scale = max(1.0, float(np.abs(ref).max()))
@@ -47,4 +47,4 @@ def check_once(runtime, key, precision: str, what: str, compute) -> None:
             "driver miscompiles these kernels. Use another device (`clrefract devices` "
             "lists them; --device P:D)"
         )
-    passed.add(key)
+    _passed.add(program)

@@ -39,14 +39,14 @@ class Status(IntEnum):
     NONFINITE = 3
 
 
-def work_group_size(items: int, on_cpu: bool) -> int | None:
+def work_group_size(items: int, runtime: Runtime) -> int | None:
     """Work-group size of a launch of `items` work-items. On CPUs PoCL runs a work-group as
     a loop over its work-items, each with its own copy of the private arrays on one
     thread's stack: the driver's choice of thousands of work-items overflows it (crashes
     seen: the backward pass's 4 KB of accumulators at 2,500 work-items in float64, a
     skipping trace's gathers at 4,096, a hash grid's distillation at one lane). At most 32
     there, whatever the lanes; on GPUs the driver's."""
-    if not on_cpu:
+    if runtime.info.kind != "cpu":
         return None
     g = 32
     while items % g:
@@ -207,20 +207,18 @@ class Tracer:
         self.launch_bytes = 0  # device buffers the last launch used (bench's memory column)
         self.upload_field()
         if field.device_checked:
-            self._check_kernels(
-                (tuple(sources), tuple(sorted(map(str, defines.items()))), precision)
-            )
+            self._check_kernels()
         if self.skip_empty:
             self.set_occupancy(self.field_occupancy() if occupancy is None else occupancy)
 
-    def _check_kernels(self, key) -> None:
+    def _check_kernels(self) -> None:
         """eta from the device against the field's NumPy eval, once per device and build
         (device_check.py)."""
         box = getattr(self.field, "box", self.box)
         pts = check_points(box)
         check_once(
             self.runtime,
-            key,
+            self.kernels,
             self.precision,
             f"the {self.field.kind} field's eta",
             lambda: (self.eval_field(pts)[0], self.field.eval(pts)[0]),
@@ -331,7 +329,7 @@ class Tracer:
             else:
                 b = a
             bufs.append(b)
-        local = local or work_group_size(n_items, self.runtime.info.kind == "cpu")
+        local = local or work_group_size(n_items, self.runtime)
         kernel(q, (n_items,), None if local is None else (local,), self._fp, self._fd, *bufs)
         self.launch_bytes = sum(
             b.size for b in (self._fp, self._fd, *bufs) if isinstance(b, cl.MemoryObject)

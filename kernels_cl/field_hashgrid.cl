@@ -147,22 +147,31 @@ HG_INLINE void hg_scatter(__global REAL *grad, const int l, const uint *idx, con
     realv ix = SEL(RV(0), RV(1), ux == cx), iy = SEL(RV(0), RV(1), uy == cy),                \
           iz = SEL(RV(0), RV(1), uz == cz);
 
-/* Corner weights of level l at the (clamped, normalised) points: table indices idx, weight
- * cw and its gradient (cgx cgy cgz), for the 8 corners. hashgrid_adjoint.cl's hg_corners2
- * adds Hess(weight) mu; the two are written alike, with selects and no per-axis arrays
- * (NVIDIA's driver computed the features of 8 or more levels wrong from the per-axis
- * two-element arrays this replaces, and the adjoint's encoding right). */
-HG_INLINE void hg_corners(FIELD_PARAMS, const int l, realv cx, realv cy, realv cz, realv ix,
-                          realv iy, realv iz, uint *idx, realv *cw, realv *cgx, realv *cgy,
-                          realv *cgz) {
+/* The cell of level l holding the (clamped, normalised) points: table indices idx of its 8
+ * corners and, per axis, the high corner's weight s, ds/dx and d2s/dx2 (hg_axis). */
+HG_INLINE void hg_cell(FIELD_PARAMS, const int l, realv cx, realv cy, realv cz, realv ix,
+                       realv iy, realv iz, uint *idx, realv *sx, realv *sy, realv *sz,
+                       realv *dsx, realv *dsy, realv *dsz, realv *ddx, realv *ddy, realv *ddz) {
     const REAL sx_ = (REAL)BOX_HI_X - (REAL)BOX_LO_X, sy_ = (REAL)BOX_HI_Y - (REAL)BOX_LO_Y,
                sz_ = (REAL)BOX_HI_Z - (REAL)BOX_LO_Z;
     const REAL n = fp[1 + l];
-    realv sx, sy, sz, dsx, dsy, dsz, unused;
-    hg_uintv i = hg_axis(cx, ix, n, n / sx_, &sx, &dsx, &unused);
-    hg_uintv j = hg_axis(cy, iy, n, n / sy_, &sy, &dsy, &unused);
-    hg_uintv k = hg_axis(cz, iz, n, n / sz_, &sz, &dsz, &unused);
+    hg_uintv i = hg_axis(cx, ix, n, n / sx_, sx, dsx, ddx);
+    hg_uintv j = hg_axis(cy, iy, n, n / sy_, sy, dsy, ddy);
+    hg_uintv k = hg_axis(cz, iz, n, n / sz_, sz, dsz, ddz);
     hg_indices(fp, l, n, i, j, k, idx);
+}
+
+/* Corner weights of level l: table indices idx, weight cw and its gradient (cgx cgy cgz),
+ * for the 8 corners. hashgrid_adjoint.cl's hg_corners2 adds Hess(weight) mu; the two are
+ * written alike, with selects and no per-axis arrays (NVIDIA's driver computed the
+ * features of 8 or more levels wrong from the per-axis two-element arrays this replaces,
+ * and the adjoint's encoding right). */
+HG_INLINE void hg_corners(FIELD_PARAMS, const int l, realv cx, realv cy, realv cz, realv ix,
+                          realv iy, realv iz, uint *idx, realv *cw, realv *cgx, realv *cgy,
+                          realv *cgz) {
+    realv sx, sy, sz, dsx, dsy, dsz, ddx, ddy, ddz; /* dd*: unused, dropped by the compiler */
+    hg_cell(FIELD_ARGS, l, cx, cy, cz, ix, iy, iz, idx, &sx, &sy, &sz, &dsx, &dsy, &dsz, &ddx,
+            &ddy, &ddz);
     for (int c = 0; c < 8; ++c) {
         const REAL a = (c >> 2) ? 1 : -1, b = ((c >> 1) & 1) ? 1 : -1, d = (c & 1) ? 1 : -1;
         realv Ax = (c >> 2) ? sx : RV(1) - sx, Ay = ((c >> 1) & 1) ? sy : RV(1) - sy,

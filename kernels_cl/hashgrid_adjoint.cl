@@ -40,14 +40,9 @@ HG_INLINE void hg_corners2(FIELD_PARAMS, const int l, realv cx, realv cy, realv 
                            realv iy, realv iz, realv mx, realv my, realv mz, uint *idx,
                            realv *cw, realv *cgx, realv *cgy, realv *cgz, realv *chx,
                            realv *chy, realv *chz) {
-    const REAL sx_ = (REAL)BOX_HI_X - (REAL)BOX_LO_X, sy_ = (REAL)BOX_HI_Y - (REAL)BOX_LO_Y,
-               sz_ = (REAL)BOX_HI_Z - (REAL)BOX_LO_Z;
-    const REAL n = fp[1 + l];
     realv sx, sy, sz, dsx, dsy, dsz, ddx, ddy, ddz;
-    hg_uintv i = hg_axis(cx, ix, n, n / sx_, &sx, &dsx, &ddx);
-    hg_uintv j = hg_axis(cy, iy, n, n / sy_, &sy, &dsy, &ddy);
-    hg_uintv k = hg_axis(cz, iz, n, n / sz_, &sz, &dsz, &ddz);
-    hg_indices(fp, l, n, i, j, k, idx);
+    hg_cell(FIELD_ARGS, l, cx, cy, cz, ix, iy, iz, idx, &sx, &sy, &sz, &dsx, &dsy, &dsz, &ddx,
+            &ddy, &ddz);
     for (int c = 0; c < 8; ++c) {
         const REAL a = (c >> 2) ? 1 : -1, b = ((c >> 1) & 1) ? 1 : -1, d = (c & 1) ? 1 : -1;
         /* per axis: factor (1 - s or s), first and second derivative */

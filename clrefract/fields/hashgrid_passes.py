@@ -117,7 +117,7 @@ class DevicePasses:
         p = field.params_vec
         check_once(
             runtime,
-            (tuple(sources), tuple(sorted(map(str, defines.items()))), precision),
+            prg,
             precision,
             "the hash grid's MLP output (distillation)",
             lambda: (self.forward(p, pts)[0], field._forward2(pts, None, p, False)[0]),
@@ -252,7 +252,7 @@ class DevicePasses:
 
     def _group(self, items: int):
         """Work-groups small enough for PoCL's stack (tracer.work_group_size)."""
-        g = work_group_size(items, self.runtime.info.kind == "cpu")
+        g = work_group_size(items, self.runtime)
         return None if g is None else (g,)
 
     @property
