@@ -87,3 +87,41 @@ def test_an_interrupted_start_is_taken_up_where_it_stopped(tmp_path, monkeypatch
     assert {k: again[k] for k in ("eta", "offset_mm", "smoothing_mm", "loss")} == {
         k: whole[k] for k in ("eta", "offset_mm", "smoothing_mm", "loss")
     }
+
+
+def test_coarse_grids_rank_on_a_share_of_the_rays_and_pick_the_whole_batchs_start(
+    tmp_path, monkeypatch
+):
+    """The level set's coarse grids (offset x index, shells) trace fewer rays per candidate
+    (a quarter, but no fewer than COARSE_RAYS), the same rays for each; the start picked
+    is the one the whole batch picks."""
+    from clrefract import fit_start
+    from clrefract.fit import Fit, load_config, prepare_fit
+    from clrefract.synth import MakeOptions, make_dataset
+
+    assert fit_start.coarse_rays(8192) == 2048 and fit_start.coarse_rays(4096) == 2048
+    assert fit_start.coarse_rays(1024) == 1024  # small batches: every ray
+    data = tmp_path / "sphere"
+    make_dataset("sphere", data, MakeOptions(views=16, res=40, env_width=256, volume_res=16))
+    settings = dict(field="levelset", res=16, iterations=1, batch=4096, tighten_hull=False)
+    forward, rays, picks = Fit._forward_loss, {}, {}
+    for share in (1, fit_start.COARSE_SHARE):
+        traced = rays.setdefault(share, [])
+        monkeypatch.setattr(fit_start, "COARSE_SHARE", share)
+        monkeypatch.setattr(fit_start, "COARSE_RAYS", 4096 // fit_start.COARSE_SHARE)
+
+        def counted(self, idx, t=traced):
+            t.append(len(idx))
+            return forward(self, idx)
+
+        monkeypatch.setattr(Fit, "_forward_loss", counted)
+        prepare_fit(data, tmp_path / f"run{share}", load_config(None, settings))
+        init = json.loads((tmp_path / f"run{share}" / "init.json").read_text())
+        picks[share] = {k: init[k] for k in ("eta", "offset_mm", "smoothing_mm", "loss")}
+    whole, part = rays[1], rays[fit_start.COARSE_SHARE]
+    n = whole[0]  # the rays through the masks: fewer than 4,096 here
+    assert 2048 < n <= 4096 and set(whole) == {n} and set(part) == {n, 1024}
+    # the hull's coarse grid (7 offsets x 8 indices) and three shells' 8 indices each
+    assert part.count(1024) == 7 * 8 + 3 * 8
+    assert sum(part) < 0.8 * sum(whole)
+    assert picks[1] == picks[fit_start.COARSE_SHARE], picks
