@@ -292,6 +292,7 @@ def _cmd_fit(args) -> int:
             "optimizer",
             "adjoint_growth_max",
             "diverge_factor",
+            "patience",
             "adjoint",
             "skip_empty",
             "occupancy_every",
@@ -608,6 +609,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         help="stop once the held-out loss exceeds its best by this factor, keeping the best "
         "field (default 5; 0: never); a non-finite loss, gradient or parameter always stops",
+    )
+    p.add_argument(
+        "--patience",
+        type=int,
+        help="stop once this many validated steps in a row find no better held-out loss "
+        "(default: 16 for the line search, 0 otherwise; 0: run every iteration)",
     )
     p.add_argument(
         "--adjoint",

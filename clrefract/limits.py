@@ -136,6 +136,7 @@ def check_fit_config(cfg) -> None:
     check_memory(f"batch {cfg.batch}", cfg.batch * FIT_BYTES_PER_RAY * 4)
     check_count("iterations", cfg.iterations, 1, INT32_MAX)
     check_count("queues", cfg.queues, 1, 64)
+    check_count("patience", cfg.patience, 0, INT32_MAX)
     if cfg.field in ("voxel", "levelset") and cfg.res:  # 0: sized from the photographs
         check_grid("res", cfg.res)
     elif cfg.field == "hashgrid":

@@ -245,6 +245,8 @@ def write_fit_report(fit) -> dict:
     }
     if getattr(fit, "stopped", None):
         result["stopped"] = fit.stopped
+    if getattr(fit, "patience_stop", None):
+        result["stopped_without_progress"] = fit.patience_stop
     if getattr(fit, "final_refit", None):
         result["final_refit"] = fit.final_refit
     rows = _guarded(result, "metrics.jsonl", lambda: _metric_rows(out / "metrics.jsonl")) or []

@@ -212,6 +212,41 @@ def test_run_keeps_the_parameters_that_validated_best(blob_dataset, tmp_path):
     assert np.allclose(saved.values.ravel(), best)
 
 
+def test_a_run_stops_once_patience_steps_find_nothing_better(blob_dataset, tmp_path, monkeypatch):
+    """With patience 3 and held-out losses that fall to step 2 and rise after it, the run
+    stops after step 5, says so, keeps step 2, and results.json records where; with
+    patience 0 every step runs."""
+    import io
+
+    from clrefract.fit import Fit, prepare_fit
+
+    held_out = {0: 1.0, 1: 0.8, 2: 0.5}  # then 0.63, 0.64, ...: worse, but not diverging
+    monkeypatch.setattr(
+        Fit, "validation_loss", lambda self: held_out.get(self.it, 0.6 + 0.01 * self.it)
+    )
+    log = io.StringIO()
+    fit = prepare_fit(
+        blob_dataset,
+        tmp_path / "run",
+        _cfg(iterations=12, validate_every=1, patience=3, res_schedule=()),
+        stream=log,
+    )
+    res = fit.run()
+    assert (res["iterations"], res["best_iteration"]) == (5, 2)
+    assert res["stopped_without_progress"] == {"at_iteration": 5, "best_iteration": 2}
+    assert "no better held-out loss in the 3 steps since step 2: stopped" in log.getvalue()
+    rows = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
+    assert len(rows) == 5
+    res = run_fit(
+        blob_dataset,
+        tmp_path / "all",
+        _cfg(iterations=6, validate_every=1, patience=0, res_schedule=()),
+    )
+    assert res["iterations"] == 6 and "stopped_without_progress" not in res
+    with pytest.raises(ClrefractError, match="patience must be between 0"):
+        _cfg(patience=-1).validate()
+
+
 def test_voxel_step_defaults_to_half_a_cell_and_is_recorded(blob_dataset, tmp_path):
     """A voxel fit without --step steps half a cell of its final grid (the blob's box is
     100 mm, 12 nodes: 4.55 mm), written into config.toml so that render and --resume use
@@ -278,8 +313,9 @@ def test_hash_grid_from_the_hull_defaults_to_its_line_search_at_half_a_millimetr
     hg = load_config(None, dict(field="hashgrid"))
     assert (hg.optimizer, hg.width, hg.step_mm) == ("line-search", 0.5, 0.125)
     assert (hg.iterations, hg.line_batch, hg.validate_every, hg.refit) == (32, 32768, 1, "best")
+    assert hg.patience == 16
     told = load_config(None, dict(field="hashgrid", width=1.0, optimizer="adam"))
-    assert (told.width, told.iterations, told.validate_every) == (1.0, 600, 25)
+    assert (told.width, told.iterations, told.validate_every, told.patience) == (1.0, 600, 25, 0)
     (tmp_path / "fit.toml").write_text('field = "hashgrid"\nline_batch = 4096\n')
     from_file = load_config(tmp_path / "fit.toml", dict(iterations=3))
     assert (from_file.line_batch, from_file.iterations, from_file.width) == (4096, 3, 0.5)
