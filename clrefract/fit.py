@@ -1136,8 +1136,8 @@ class Fit(HullStart):
         once, and results.json records it."""
         waited = self.it - self.best[1]
         if not self.cfg.patience or not np.isfinite(self.best[0]):
-            return False
-        if waited < self.cfg.patience * max(self.cfg.validate_every, 1):
+            return False  # no validated step yet (or none asked for)
+        if waited < self.cfg.patience * self.cfg.validate_every:
             return False
         self.patience_stop = {"at_iteration": self.it, "best_iteration": self.best[1]}
         self.stream.write(

@@ -252,12 +252,12 @@ class HullStart:
     def _loss_of(self, hull, idx, eta: float, offset: float, coarse: bool = False) -> float:
         """The loss of a candidate start, traced, or kept from an interrupted start; on
         `coarse_rays` of the rays `idx` for a coarse grid."""
-        coarse = coarse and coarse_rays(len(idx)) < len(idx)
-        key = f"{self._search_at}|{eta:.9g}|{offset:.9g}" + ("|coarse" if coarse else "")
+        n = coarse_rays(len(idx)) if coarse else len(idx)
+        key = f"{self._search_at}|{eta:.9g}|{offset:.9g}" + ("|coarse" if n < len(idx) else "")
         loss = self._losses.get(key)
         if loss is None:
             self._set_start(hull, eta, offset)
-            loss = self._forward_loss(idx[: coarse_rays(len(idx))] if coarse else idx)
+            loss = self._forward_loss(idx[:n])
             self._losses.put(key, loss)
         if self._search_bar is not None:
             self._best_seen = min(self._best_seen, loss)
