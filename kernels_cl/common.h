@@ -98,7 +98,9 @@ inline realv box_window(realv x, realv y, realv z, realv *wx, realv *wy, realv *
 }
 
 /* Float atomic add on global memory: the float-atomics extension where the build enables it
- * (FLOAT_ATOMICS, OpenCL C 3.0), else a compare-and-swap loop (portable OpenCL 1.2). */
+ * (FLOAT_ATOMICS, OpenCL C 3.0), else a compare-and-swap loop (portable OpenCL 1.2) whose
+ * failed swap hands back the value to try next: one plain read a call, however contended
+ * (Oclgrind reports that read as racing with the swaps; tools/oclgrind_check.py). */
 #ifdef REAL_IS_DOUBLE
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 inline void atomic_add_real(volatile __global REAL *p, REAL v) {
@@ -106,10 +108,14 @@ inline void atomic_add_real(volatile __global REAL *p, REAL v) {
     atomic_fetch_add_explicit((volatile __global atomic_double *)p, v, memory_order_relaxed);
 #else
     union { long i; double f; } old, upd;
-    do {
-        old.f = *p;
+    long seen;
+    old.f = *p;
+    while (1) {
         upd.f = old.f + v;
-    } while (atom_cmpxchg((volatile __global long *)p, old.i, upd.i) != old.i);
+        seen = atom_cmpxchg((volatile __global long *)p, old.i, upd.i);
+        if (seen == old.i) break;
+        old.i = seen;
+    }
 #endif
 }
 #else
@@ -118,10 +124,14 @@ inline void atomic_add_real(volatile __global REAL *p, REAL v) {
     atomic_fetch_add_explicit((volatile __global atomic_float *)p, v, memory_order_relaxed);
 #else
     union { int i; float f; } old, upd;
-    do {
-        old.f = *p;
+    int seen;
+    old.f = *p;
+    while (1) {
         upd.f = old.f + v;
-    } while (atomic_cmpxchg((volatile __global int *)p, old.i, upd.i) != old.i);
+        seen = atomic_cmpxchg((volatile __global int *)p, old.i, upd.i);
+        if (seen == old.i) break;
+        old.i = seen;
+    }
 #endif
 }
 #endif

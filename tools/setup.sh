@@ -33,6 +33,13 @@ if ! command -v mpiexec >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1 &&
       openmpi-bin libopenmpi-dev >/dev/null) || echo "setup: no MPI from apt; MPI tests will skip"
 fi
 
+# Oclgrind, a simulated OpenCL device that reports out-of-bounds and uninitialised reads and
+# races (tools/oclgrind_check.py); optional (its test skips without). It adds no ICD file.
+if ! command -v oclgrind >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
+  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+      oclgrind >/dev/null) || echo "setup: no oclgrind from apt; its test will skip"
+fi
+
 if [ ! -x .venv/bin/python ]; then
   python3 -m venv .venv
 fi

@@ -27,9 +27,11 @@ ROOT = Path(__file__).resolve().parents[1]
 COUNTS = re.compile(r"(\d+) (passed|failed|errors?|skipped|xfailed|xpassed|deselected)")
 
 
-def run_file(path: str, selector: str, timeout: float, deadline: float) -> dict:
-    env = dict(os.environ, PYOPENCL_CTX=selector, PYTHONUNBUFFERED="1")
-    cmd = [sys.executable, "-m", "pytest", "-q", "-rfE", "-p", "no:cacheprovider", path]
+def run_file(path: str, selector: str, timeout: float, deadline: float, args=(), env=None) -> dict:
+    """One pytest process over `path` (and the pytest `args`) on device `selector`, with
+    `env` added to this process's environment; its counts, failures and whole output."""
+    env = dict(os.environ, **(env or {}), PYOPENCL_CTX=selector, PYTHONUNBUFFERED="1")
+    cmd = [sys.executable, "-m", "pytest", "-q", "-rfE", "-p", "no:cacheprovider", path, *args]
     t0 = time.perf_counter()
     # a file queued behind slow ones gets what is left of the whole run's budget
     timeout = max(1.0, min(timeout, deadline - t0))
@@ -38,11 +40,13 @@ def run_file(path: str, selector: str, timeout: float, deadline: float) -> dict:
             cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
         )
         out, rc = done.stdout + done.stderr, done.returncode
+        # pytest's summary ends its stdout; a driver may write to stderr after it
+        tail = done.stdout.strip().splitlines()[-1:]
     except subprocess.TimeoutExpired as exc:  # its output may come as bytes despite text=True
-        out, rc = exc.stdout or "", None
-        out = out.decode(errors="replace") if isinstance(out, bytes) else out
+        parts = [exc.stdout or "", exc.stderr or ""]
+        out = "".join(p.decode(errors="replace") if isinstance(p, bytes) else p for p in parts)
+        rc, tail = None, []
     counts = {"passed": 0, "failed": 0, "errors": 0, "skipped": 0}
-    tail = out.strip().splitlines()[-1:] if out.strip() else []
     for n, what in COUNTS.findall(tail[0] if tail else ""):
         key = "errors" if what.startswith("error") else what
         if key in counts:
