@@ -701,15 +701,7 @@ class Fit(HullStart):
         )
 
     def start(self) -> None:
-        cfg = self.cfg
-        if cfg.field in ("levelset", "hashgrid") and cfg.step == 0:
-            scale = interface_step_scale(self.ds.scene.eta_range[1])
-            if scale < 1:  # recorded in config.toml, which render, eval and resume read
-                cfg.step = cfg.step_mm * scale
-        if self.cfg.field == "levelset" or (self.cfg.field == "hashgrid" and self._hull_fit()):
-            self.box = self._object_box()
-        self._size_from_images()
-        res = resolution_at(self.cfg, 0)
+        res = self.start_grid()
         if self.cfg.field == "hashgrid" and self._hull_fit():
             self._start_hashgrid(res)
         else:
@@ -717,6 +709,19 @@ class Fit(HullStart):
             if self._hull_fit():
                 self._fill_hull()
         self.adam = Adam(len(self.params), self._groups())
+
+    def start_grid(self) -> int:
+        """The tracing step, box and grid resolution of the start, before any field is made
+        (the resolution returned)."""
+        cfg = self.cfg
+        if cfg.field in ("levelset", "hashgrid") and cfg.step == 0:
+            scale = interface_step_scale(self.ds.scene.eta_range[1])
+            if scale < 1:  # recorded in config.toml, which render, eval and resume read
+                cfg.step = cfg.step_mm * scale
+        if cfg.field == "levelset" or (cfg.field == "hashgrid" and self._hull_fit()):
+            self.box = self._object_box()
+        self._size_from_images()
+        return resolution_at(cfg, 0)
 
     def _start_hashgrid(self, res: int) -> None:
         """A hash grid starts as the level-set start (hull, index and offset searched the
