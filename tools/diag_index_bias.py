@@ -3,11 +3,12 @@ family dataset on the start's level-set grid, its distance perturbed by a smooth
 field of a given RMS (mm), and for each perturbation the index of lowest loss on the fit's
 fixed batch of mask rays (the start search's batch).
 
-    python tools/diag_index_bias.py DATA [--res 32] [--batch 2048] [--errors 0 0.25 0.5 1]
+    python tools/diag_index_bias.py DATA [--res 64] [--batch 8192] [--errors 0 0.25 0.5 1]
                                          [--seeds 3] [--sigma 1.5] [--json OUT]
 
 The perturbation is white noise smoothed by a Gaussian of `sigma` cells, scaled to the RMS;
-indices are scanned from the truth - 0.3 to the truth + 0.1 in steps of 0.025.
+indices are scanned from the truth - 0.3 to the truth + 0.1 in steps of 0.025. The grid and
+batch default to a level-set fit's.
 """
 
 from __future__ import annotations
@@ -30,8 +31,9 @@ from clrefract.report import scene_truth
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data", type=Path, help="a dataset with a ground truth (`dataset make`)")
-    ap.add_argument("--res", type=int, default=32, help="level-set nodes a side")
-    ap.add_argument("--batch", type=int, default=2048, help="mask rays of the loss")
+    fit_cfg = FitConfig(field="levelset")
+    ap.add_argument("--res", type=int, default=fit_cfg.res, help="level-set nodes a side")
+    ap.add_argument("--batch", type=int, default=fit_cfg.batch, help="mask rays of the loss")
     ap.add_argument("--errors", type=float, nargs="+", default=[0.0, 0.25, 0.5, 1.0])
     ap.add_argument("--seeds", type=int, default=3, help="perturbations per RMS above 0")
     ap.add_argument("--sigma", type=float, default=1.5, help="smoothing of the error, cells")
