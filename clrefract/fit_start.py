@@ -32,6 +32,8 @@ SHELL_CELLS = (2.0, 4.0, 6.0)
 # picks), where 256 rays of a 24-pixel sphere picked another
 COARSE_SHARE = 4
 COARSE_RAYS = 2048
+# the tag of the start search's fixed batch of mask rays (Fit._mask_batch)
+START_BATCH = 7
 
 
 def search_losses(indices: int, smoothings: list[int], shells: int = 0) -> int:
@@ -140,7 +142,7 @@ class HullStart:
                 f"{len(masks)} training views; where none of them sees it the hull cannot "
                 "close (frame the whole object, or give a tighter --box)\n"
             )
-        idx = self._mask_batch(7)
+        idx = self._mask_batch(START_BATCH)
         etas = np.linspace(1.0, self.ds.scene.eta_range[1], 9)
         shapes = self._start_shapes(hull) if levelset else []
         shells = len(SHELL_CELLS) if levelset and self.cfg.shell_starts else 0

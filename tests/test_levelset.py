@@ -10,6 +10,7 @@ from clrefract.errors import ClrefractError
 from clrefract.fields import load_field_file
 from clrefract.fields.base import Box
 from clrefract.fields.levelset import LevelSetField
+from clrefract.fit_start import START_BATCH
 from clrefract.gradcheck import directional_errors, smooth_env
 from clrefract.gradient import GradientEngine
 from clrefract.tracer import Tracer
@@ -216,7 +217,7 @@ def test_high_index_glass_is_traced_with_a_step_fine_enough_to_find_its_index(tm
     fit._size_from_images()
     truth = scene_truth(fit.ds)
     phi = LevelSetField.from_sdf(lambda p: truth.sdf(p)[0], fit.box, 48, 1.9, 1.0).data()
-    idx = fit._mask_batch(7)
+    idx = fit._mask_batch(START_BATCH)
 
     def losses(step):
         fit._bind(fit._make_field(48), step=step)

@@ -13,6 +13,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 from oclgrind_check import icd_library  # noqa: E402
 
+# an environment condition, not a missing feature: tools/setup.sh installs oclgrind where apt
+# works (CI's pip-only pass runs before it does)
+pytestmark = pytest.mark.skipif(
+    icd_library(None) is None, reason="oclgrind is not installed (tools/setup.sh installs it)"
+)
+
 KERNELS = '''
 import numpy as np
 import pyopencl as cl
@@ -67,7 +73,6 @@ def check(tmp_path, body: str, *flags: str):
     return done, json.loads(out.read_text())[0]
 
 
-@pytest.mark.skipif(icd_library(None) is None, reason="oclgrind is not installed")
 def test_reads_past_the_end_uninitialised_values_and_races_are_found(tmp_path):
     body = (
         "\n\ndef test_past_end():\n    run('past_end', np.int32(4))\n"
@@ -92,7 +97,6 @@ def test_reads_past_the_end_uninitialised_values_and_races_are_found(tmp_path):
     assert {d["kind"] for d in row["kernel_diagnostics"]} == {"invalid read", "data race"}
 
 
-@pytest.mark.skipif(icd_library(None) is None, reason="oclgrind is not installed")
 def test_a_sound_kernel_passes_with_nothing_found(tmp_path):
     done, row = check(tmp_path, "\n\ndef test_sound():\n    run('sound')\n")
     assert done.returncode == 0, done.stdout + done.stderr

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from clrefract.fit import Fit, fit_to_field, load_config
+from clrefract.fit_start import START_BATCH
 from clrefract.gradient import traced_loss
 from clrefract.report import scene_truth
 from clrefract.synth import MakeOptions, make_dataset
@@ -52,7 +53,7 @@ def main() -> None:
     fit_to_field(field, start, cfg.width, cfg.distil_iterations, 0)
     fit._bind(field)
     p0 = fit.params.copy()
-    idx = fit._mask_batch(7)
+    idx = fit._mask_batch(START_BATCH)
     o, d, c, w = fit.origins[idx], fit.dirs[idx], fit.rgb[idx], fit.weights[idx]
     env = fit._env_full
 

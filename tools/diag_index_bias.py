@@ -24,7 +24,8 @@ from scipy.ndimage import gaussian_filter
 
 from clrefract.fields.levelset import LevelSetField
 from clrefract.fit import Fit, FitConfig
-from clrefract.gradient import traced_loss
+from clrefract.fit_linesearch import set_params
+from clrefract.fit_start import START_BATCH
 from clrefract.report import scene_truth
 
 
@@ -52,23 +53,16 @@ def main() -> int:
         exact = LevelSetField.from_sdf(
             lambda p: truth.sdf(p)[0], fit.box, shape, truth.eta, cfg.width
         ).data()[:-1]
-        idx = fit._mask_batch(7)
+        idx = fit._mask_batch(START_BATCH)
         etas = np.round(np.arange(truth.eta - 0.3, truth.eta + 0.1 + 1e-9, 0.025), 4)
 
-        def pick(phi: np.ndarray) -> tuple[float, list]:
+        def pick(phi: np.ndarray) -> float:
+            """The scanned index of lowest loss with distance phi."""
             losses = []
             for e in etas:
-                fit.params[:-1] = phi
-                fit.params[-1] = e
-                fit.field.set_data(fit.params)
-                fit._upload()
-                r = fit.engine.tracer.trace(fit.origins[idx], fit.dirs[idx])
-                losses.append(
-                    traced_loss(
-                        fit._env_full, r.status, r.direction, fit.rgb[idx], fit.weights[idx]
-                    )[0]
-                )
-            return float(etas[int(np.argmin(losses))]), losses
+                set_params(fit, np.append(phi, e))
+                losses.append(fit._forward_loss(idx))
+            return float(etas[int(np.argmin(losses))])
 
         cell = float(np.max(fit.box.size) / (max(shape) - 1))
         print(
@@ -82,7 +76,7 @@ def main() -> int:
             for seed in range(args.seeds if rms > 0 else 1):
                 noise = gaussian_filter(np.random.default_rng(seed).normal(size=shape), args.sigma)
                 noise *= rms / noise.std()
-                picks.append(pick(exact + noise.ravel())[0])
+                picks.append(pick(exact + noise.ravel()))
             rows.append({"error_rms_mm": rms, "picks": picks, "mean": float(np.mean(picks))})
             print(f"{rms:12.3g}  " + " ".join(f"{p:.3f}" for p in picks), flush=True)
     args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from clrefract.fit_start import START_BATCH
+
 SHELL_CELLS = (2, 4, 6)
 
 
@@ -77,7 +79,7 @@ def main() -> None:
     fit._size_from_images()
     fit._bind(fit._make_field(resolution_at(fit.cfg, 0)))
     hull = fit._hull(64)
-    idx = fit._mask_batch(7)
+    idx = fit._mask_batch(START_BATCH)
 
     def loss(shape, eta: float) -> float:
         fit._set_start(shape, eta, 0.0)

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from clrefract.fit_start import START_BATCH
+
 
 def texel_directions(height: int, width: int) -> np.ndarray:
     """Unit directions of a lat-long map's texel centres, as the environment lookup maps them."""
@@ -142,7 +144,7 @@ def main() -> None:
         mode = np.einsum("i,j,k->ijk", *hats).ravel()
         if (mode[band] > 0.5).any():
             modes.append(mode)
-    idx = fit._mask_batch(7)
+    idx = fit._mask_batch(START_BATCH)
 
     def loss_at(a, e) -> float:
         set_params(fit, phi0 - np.tensordot(a, modes, axes=1) if len(modes) else phi0, e)
