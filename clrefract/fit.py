@@ -922,12 +922,17 @@ class Fit(HullStart):
     def _forward_loss(self, idx: np.ndarray, tracer=None) -> float:
         """Loss of the current field on training rays idx, against the sharp environment
         (forward pass only), traced by its engine's tracer or `tracer`."""
+        return self.forward_render(idx, tracer)[0]
+
+    def forward_render(self, idx: np.ndarray, tracer=None) -> tuple[float, np.ndarray]:
+        """_forward_loss and the radiance of each ray (linear RGB, black where trapped)."""
         from .gradient import traced_loss
 
         r = (tracer or self.engine.tracer).trace(self.origins[idx], self.dirs[idx])
-        return traced_loss(
+        loss, _, radiance = traced_loss(
             self._env_full, r.status, r.direction, self.rgb[idx], self.weights[idx], self.cfg.loss
-        )[0]
+        )
+        return loss, radiance
 
     def validation_loss(self) -> float:
         """Loss on a fixed batch of the held-out views' rays, most through their masks
