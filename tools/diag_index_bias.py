@@ -82,8 +82,9 @@ def main() -> int:
             for e in etas:
                 set_params(fit, np.append(phi, e))
                 loss, radiance = fit.forward_render(idx)
+                renders = srgb(radiance)[0]
                 for name in args.losses:
-                    scores[name].append(LOSSES[name](loss, srgb(radiance)[0], photos))
+                    scores[name].append(LOSSES[name](loss, renders, photos))
             return {name: float(etas[int(np.argmin(v))]) for name, v in scores.items()}
 
         cell = float(np.max(fit.box.size) / (max(shape) - 1))

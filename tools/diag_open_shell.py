@@ -63,7 +63,6 @@ def directions() -> dict:
 def main() -> None:
     from diag_shape_gradient import levelset_fit, set_params, true_levelset
 
-    from clrefract.fit import resolution_at
     from clrefract.report import scene_truth
 
     ap = argparse.ArgumentParser(description=__doc__)
@@ -75,9 +74,7 @@ def main() -> None:
     etas = [float(e) for e in args.etas.split(",")]
     t0 = time.perf_counter()
     fit = levelset_fit(args.scene, args.data, "diag_open_shell_run")
-    fit.box = fit._object_box()  # the start's own box and grid, without its search
-    fit._size_from_images()
-    fit._bind(fit._make_field(resolution_at(fit.cfg, 0)))
+    fit._bind(fit._make_field(fit.start_grid()))  # the start's own grid, without its search
     hull = fit._hull(64)
     idx = fit._mask_batch(START_BATCH)
 
