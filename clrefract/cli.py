@@ -326,8 +326,8 @@ def _cmd_fit(args) -> int:
 def _check_resume_flags(run: Path, overrides: dict, config: str | None) -> None:
     """--resume continues a run with its own settings: a flag that asks for different ones
     (another field kind, say) is refused rather than silently ignored. --iterations may
-    lengthen a line-search run (extend_run)."""
-    from .fit import extend_run, load_config
+    lengthen a line-search run (extend_run), --width change its interface (narrow_run)."""
+    from .fit import extend_run, load_config, narrow_run
     from .parallel import world
 
     if config:
@@ -339,7 +339,7 @@ def _check_resume_flags(run: Path, overrides: dict, config: str | None) -> None:
         f"--{k.replace('_', '-')} {v} (the run has {getattr(saved, k)})"
         for k, v in overrides.items()
         if v is not None
-        and k not in ("device", "iterations")
+        and k not in ("device", "iterations", "width")
         and k in vars(saved)
         and v != getattr(saved, k)
     ]
@@ -347,8 +347,11 @@ def _check_resume_flags(run: Path, overrides: dict, config: str | None) -> None:
         raise ClrefractError(
             f"{run}: --resume cannot change the run's settings: {'; '.join(clash)}"
         )
-    if overrides.get("iterations") is not None and world().root:  # rank 0 writes the run
-        extend_run(run, overrides["iterations"])
+    if world().root:  # rank 0 writes the run
+        if overrides.get("width") is not None:
+            narrow_run(run, overrides["width"])
+        if overrides.get("iterations") is not None:
+            extend_run(run, overrides["iterations"])
 
 
 def _cmd_eval(args) -> int:

@@ -117,6 +117,9 @@ class FitConfig:
     # fitted to the best step once, at the end; "step": after every move taken, and the grid
     # is validated (a refit and its validation were half of a step on the quick sphere)
     refit: str = "best"
+    # after a line search, its best level set grown and its index moved together
+    # (clrefract/size_search.py), kept where the held-out views agree
+    size_search: bool = True
     line_batch: int = 0  # mask rays a line-search step takes (0: batch, as the start's search)
     reg: float = 1e-4  # weight of the smoothness regulariser
     sparsity: float = 0.0  # weight of an L1 pull of voxel values towards eta = 1 (empty space)
@@ -615,6 +618,7 @@ class Fit(HullStart):
         self.engine = None
         self.guide = None  # a hash grid's line search: the level set it follows
         self.final_refit = None  # and its grid's one refit to the best step (refit = "best")
+        self.size_search = None  # what the size and index search did (size_search.py)
         self._search_bar = None  # the start search's progress, while it runs
         self._losses = None  # the start search's losses (start_losses.py)
         self._search_at = ""  # the shape and smoothing the search is at (their key)
@@ -1000,10 +1004,15 @@ class Fit(HullStart):
     def use_best(self) -> None:
         """Load the parameters that scored best on the validation batch (a guide's: the
         grid fitted to them)."""
+        searched = None
+        if self.cfg.optimizer == "line-search" and self.cfg.size_search:
+            from .size_search import size_index_search
+
+            searched = self.size_search = size_index_search(self)
         if self.validates_guide():
             from .fit_linesearch import refit_to_best
 
-            self.final_refit = refit_to_best(self)
+            self.final_refit = refit_to_best(self, moved=bool(searched and searched["kept"]))
             return
         _, _, params = self.best
         if params is not None and len(params) == len(self.params):
@@ -1278,9 +1287,34 @@ def extend_run(out: Path, iterations: int) -> None:
             f"{out}: --resume --iterations {iterations}: the run has {cfg.iterations} steps, "
             "and --resume can only add steps"
         )
+    _rewrite_config(out, replace(cfg, iterations=iterations))
+
+
+def narrow_run(out: Path, width: float) -> None:
+    """Give a line-search run another interface width before it is resumed: its best level
+    set is searched again at that width (size_search.py) and the grid fitted to it there.
+    A fit at 0.5 mm finds the shape that is best for 0.5 mm images, and sharper images
+    then ask for its size and index together (README, Fitting). The tracer's step follows
+    the width unless the run set one."""
+    from dataclasses import replace
+
+    cfg = load_config(out / "config.toml", {})
+    if width == cfg.width:
+        return
+    if cfg.optimizer != "line-search" or cfg.field not in ("levelset", "hashgrid"):
+        raise ClrefractError(
+            f"{out}: --resume --width {width}: only a line search's level set (a hash grid's "
+            "guide) can take another interface width; start a new run"
+        )
+    cfg = replace(cfg, width=width)
+    cfg.validate()
+    _rewrite_config(out, cfg)
+
+
+def _rewrite_config(out: Path, cfg: FitConfig) -> None:
     # whole or not at all (under MPI the other ranks read it): a file beside it, renamed
     new = out / "config.toml.new"
-    new.write_text(_toml(replace(cfg, iterations=iterations)))
+    new.write_text(_toml(cfg))
     new.replace(out / "config.toml")
 
 

@@ -218,15 +218,15 @@ def refit(fit, iterations: int, rate: float = REFIT_RATE) -> float:
     return rms
 
 
-def refit_to_best(fit) -> dict | None:
+def refit_to_best(fit, moved: bool = False) -> dict | None:
     """With refit = "best": the hash grid fitted to its guide's best-validated step (the
     last without validation) from the start's fit (FINAL_REFIT's iterations), the
     guide left at its last step; what that took, or None where the best is the start, whose
-    level set the grid holds already."""
+    level set the grid holds already, and the size search did not `move` it."""
     _, it, params = fit.best
     if params is None:  # none validated: the last step
         it, params = fit.it, fit.guide.params.copy()
-    if it == 0:
+    if it == 0 and not moved:
         return None
     t0 = time.perf_counter()
     # the refit samples the level set on the host: nothing to upload, and the guide's own

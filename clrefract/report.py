@@ -247,6 +247,8 @@ def write_fit_report(fit) -> dict:
         result["stopped"] = fit.stopped
     if getattr(fit, "patience_stop", None):
         result["stopped_without_progress"] = fit.patience_stop
+    if getattr(fit, "size_search", None):
+        result["size_search"] = fit.size_search
     if getattr(fit, "final_refit", None):
         result["final_refit"] = fit.final_refit
     rows = _guarded(result, "metrics.jsonl", lambda: _metric_rows(out / "metrics.jsonl")) or []

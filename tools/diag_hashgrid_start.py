@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from clrefract.fit import Fit, fit_to_field, load_config
+from clrefract.fit_linesearch import set_params
 from clrefract.fit_start import START_BATCH
 from clrefract.gradient import traced_loss
 from clrefract.report import scene_truth
@@ -57,26 +58,21 @@ def main() -> None:
     o, d, c, w = fit.origins[idx], fit.dirs[idx], fit.rgb[idx], fit.weights[idx]
     env = fit._env_full
 
-    def set_params(p):
-        fit.params[:] = p
-        fit.field.set_data(fit.params)
-        fit.engine.tracer.upload_field()
-
     def loss(p, keep):
-        set_params(p)
+        set_params(fit, p)
         r = fit.engine.tracer.trace(o, d)
         return traced_loss(env, r.status, r.direction, c, w * keep, cfg.loss)[0]
 
     out = {"rays": len(idx), "d_eta": args.d_eta, "d_radius": args.d_radius}
     to_truth = p_truth - p0
     out["line"] = {t: loss(p0 + t * to_truth, 1.0) for t in (0.0, 0.1, 0.3, 0.6, 1.0)}
-    set_params(p0)
+    set_params(fit, p0)
     r = fit.engine.loss_and_grad(o, d, c, env, w)
     out["growth_p10_p25_p50_p75_p90"] = np.percentile(r.growth, [10, 25, 50, 75, 90]).tolist()
     rows = []
     for limit in (3.0, 10.0, 30.0):
         keep = (r.growth <= limit).astype(float)
-        set_params(p0)
+        set_params(fit, p0)
         g = fit.engine.loss_and_grad(o, d, c, env, w * keep).grad
         secants = [(loss(p0 + t * to_truth, keep) - loss(p0, keep)) / t for t in (0.05, 0.1)]
         cos = -(g @ to_truth) / np.linalg.norm(g) / np.linalg.norm(to_truth)
