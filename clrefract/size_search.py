@@ -70,10 +70,11 @@ def size_index_search(fit) -> dict | None:
             else:
                 dg, de = dg / 2, de / 2
         held = []
-        for g, e in ((0.0, float(base[-1])), (grow, index)):
+        for g, e in dict.fromkeys(((0.0, float(base[-1])), (grow, index))):
             set_params(fit, params_at(g, e))
             held.append(fit.held_out_loss())
-        kept = held[1] < held[0]
+        kept = len(held) == 2 and held[1] < held[0]
+        held = held * (3 - len(held))  # where it found nothing better: the same loss twice
         set_params(fit, last)
     row = {
         "grow_mm": grow,

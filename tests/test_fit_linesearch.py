@@ -201,9 +201,10 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path, refi
     assert np.allclose(resumed.direction, with_guide.direction, atol=1e-6)
 
 
-def test_resume_adds_steps_to_a_finished_line_search(tmp_path, capsys):
-    """`--resume --iterations N` lengthens a line-search run (its steps have no schedule
-    that depends on their count); it cannot shorten one."""
+def _one_step_run(tmp_path):
+    """A one-step line search of a 16^3 level set on a 24 x 24 sphere of 8 views, through
+    the command line: `clrefract.cli.main`, the run folder, and the fit command's arguments
+    (without --optimizer), the config file's path."""
     from clrefract.cli import main
     from clrefract.synth import MakeOptions, make_dataset
 
@@ -214,6 +215,13 @@ def test_resume_adds_steps_to_a_finished_line_search(tmp_path, capsys):
     fit = ["fit", str(data), "--out", str(run), "--field", "levelset", "--res", "16"]
     line = ["--optimizer", "line-search", "--batch", "1024", "--test-views", "1"]
     assert main([*fit, *line, "--iterations", "1", "--config", str(toml)]) == 0
+    return main, run, fit, toml
+
+
+def test_resume_adds_steps_to_a_finished_line_search(tmp_path, capsys):
+    """`--resume --iterations N` lengthens a line-search run (its steps have no schedule
+    that depends on their count); it cannot shorten one."""
+    main, run, fit, toml = _one_step_run(tmp_path)
     assert main([*fit, "--resume", "--iterations", "2"]) == 0
     rows = [json.loads(x) for x in (run / "metrics.jsonl").open()]
     assert [r["iteration"] for r in rows] == [1, 2]
@@ -309,16 +317,7 @@ def test_resume_with_another_width_narrows_a_finished_line_search(tmp_path, caps
     """`--resume --width W` records the new interface in config.toml and ends the run there:
     its best level set searched for size and index at W (results.json says what the search
     did); an Adam run refuses it."""
-    from clrefract.cli import main
-    from clrefract.synth import MakeOptions, make_dataset
-
-    data, run = tmp_path / "sphere", tmp_path / "run"
-    make_dataset("sphere", data, MakeOptions(views=8, res=24, env_width=256, volume_res=8))
-    toml = tmp_path / "fit.toml"
-    toml.write_text("tighten_hull = false\nshell_starts = false\n")
-    fit = ["fit", str(data), "--out", str(run), "--field", "levelset", "--res", "16"]
-    line = ["--optimizer", "line-search", "--batch", "1024", "--test-views", "1"]
-    assert main([*fit, *line, "--iterations", "1", "--config", str(toml)]) == 0
+    main, run, fit, toml = _one_step_run(tmp_path)
     assert load_config(run / "config.toml", {}).width == 1.0
     assert main([*fit, "--resume", "--width", "0.5"]) == 0
     assert load_config(run / "config.toml", {}).width == 0.5
