@@ -588,7 +588,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--width",
         type=float,
-        help="interface width, mm (1; a hash grid from the hull 0.5)",
+        help="interface width, mm (1; a hash grid from the hull 0.5); with --resume, a "
+        "line-search run's new width, its size and index searched again there",
     )
     p.add_argument("--lr", type=float, help="learning rate of voxel values")
     p.add_argument("--lr-phi", type=float, help="learning rate of the level set's distance, mm")
