@@ -1294,8 +1294,8 @@ def narrow_run(out: Path, width: float) -> None:
     """Give a line-search run another interface width before it is resumed: its best level
     set is searched again at that width (size_search.py) and the grid fitted to it there.
     A fit at 0.5 mm finds the shape that is best for 0.5 mm images, and sharper images
-    then ask for its size and index together (README, Fitting). The tracer's step follows
-    the width unless the run set one."""
+    then ask for its size and index together (README, Fitting). The tracers' steps follow
+    the width: a hash grid's unless the run set `step`, its level set's always."""
     from dataclasses import replace
 
     cfg = load_config(out / "config.toml", {})

@@ -69,12 +69,14 @@ def size_index_search(fit) -> dict | None:
                 low, grow, index = found
             else:
                 dg, de = dg / 2, de / 2
-        held = []
-        for g, e in dict.fromkeys(((0.0, float(base[-1])), (grow, index))):
-            set_params(fit, params_at(g, e))
-            held.append(fit.held_out_loss())
-        kept = len(held) == 2 and held[1] < held[0]
-        held = held * (3 - len(held))  # where it found nothing better: the same loss twice
+        # the base's held-out loss is traced again, not taken from fit.best: after
+        # --resume --width it was measured at another width
+        set_params(fit, base)
+        held = [fit.held_out_loss()] * 2
+        if (grow, index) != (0.0, float(base[-1])):
+            set_params(fit, params_at(grow, index))
+            held[1] = fit.held_out_loss()
+        kept = held[1] < held[0]
         set_params(fit, last)
     row = {
         "grow_mm": grow,
