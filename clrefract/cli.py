@@ -327,7 +327,8 @@ def _check_resume_flags(run: Path, overrides: dict, config: str | None) -> None:
     """--resume continues a run with its own settings: a flag that asks for different ones
     (another field kind, say) is refused rather than silently ignored. --iterations may
     lengthen a line-search run (extend_run), --width change its interface (narrow_run)."""
-    from .fit import extend_run, load_config, narrow_run
+    from .fit import extend_run, load_config
+    from .narrowing import narrow_run
     from .parallel import world
 
     if config:

@@ -619,6 +619,7 @@ class Fit(HullStart):
         self.guide = None  # a hash grid's line search: the level set it follows
         self.final_refit = None  # and its grid's one refit to the best step (refit = "best")
         self.size_search = None  # what the size and index search did (size_search.py)
+        self.narrowing = None  # a narrowed run's finish against its earlier width (narrowing.py)
         self._search_bar = None  # the start search's progress, while it runs
         self._losses = None  # the start search's losses (start_losses.py)
         self._search_at = ""  # the shape and smoothing the search is at (their key)
@@ -1147,6 +1148,9 @@ class Fit(HullStart):
             return self._stop_diverged(str(exc), self.it + 1)
         self.save_checkpoint()
         self.use_best()
+        from .narrowing import judge_narrowing
+
+        self.narrowing = judge_narrowing(self)  # may keep the earlier width's field.npz
         self.field.save(self.out / "field.npz")
         return self.finish()
 
@@ -1288,27 +1292,6 @@ def extend_run(out: Path, iterations: int) -> None:
             "and --resume can only add steps"
         )
     _rewrite_config(out, replace(cfg, iterations=iterations))
-
-
-def narrow_run(out: Path, width: float) -> None:
-    """Give a line-search run another interface width before it is resumed: its best level
-    set is searched again at that width (size_search.py) and the grid fitted to it there.
-    A fit at 0.5 mm finds the shape that is best for 0.5 mm images, and sharper images
-    then ask for its size and index together (README, Fitting). The tracers' steps follow
-    the width: a hash grid's unless the run set `step`, its level set's always."""
-    from dataclasses import replace
-
-    cfg = load_config(out / "config.toml", {})
-    if width == cfg.width:
-        return
-    if cfg.optimizer != "line-search" or cfg.field not in ("levelset", "hashgrid"):
-        raise ClrefractError(
-            f"{out}: --resume --width {width}: only a line search's level set (a hash grid's "
-            "guide) can take another interface width; start a new run"
-        )
-    cfg = replace(cfg, width=width)
-    cfg.validate()
-    _rewrite_config(out, cfg)
 
 
 def _rewrite_config(out: Path, cfg: FitConfig) -> None:

@@ -251,6 +251,8 @@ def write_fit_report(fit) -> dict:
         result["size_search"] = fit.size_search
     if getattr(fit, "final_refit", None):
         result["final_refit"] = fit.final_refit
+    if getattr(fit, "narrowing", None):
+        result["narrowing"] = fit.narrowing
     rows = _guarded(result, "metrics.jsonl", lambda: _metric_rows(out / "metrics.jsonl")) or []
     result["train_seconds"] = float(sum(r.get("seconds", 0.0) for r in rows))
     result["final_loss"] = rows[-1].get("loss") if rows else None

@@ -160,6 +160,7 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path, refi
         index_steps=(0.01, 0.03),
         validate_every=1,
         val_views=4,
+        size_search=False,  # its test is its own (below); here it would add a third
     )
     data = tmp_path / "sphere"
     make_dataset("sphere", data, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
@@ -316,13 +317,29 @@ def test_size_search_grows_a_shrunk_sphere_and_raises_its_index(tmp_path):
 def test_resume_with_another_width_narrows_a_finished_line_search(tmp_path, capsys):
     """`--resume --width W` records the new interface in config.toml and ends the run there:
     its best level set searched for size and index at W (results.json says what the search
-    did); an Adam run refuses it."""
+    did), and judged against the earlier width's field on the held-out views; the earlier
+    field stays where it scores better (a 4 mm ramp blurs the 0.5 mm sphere), with its
+    width. An Adam run refuses it."""
     main, run, fit, toml = _one_step_run(tmp_path)
     assert load_config(run / "config.toml", {}).width == 1.0
     assert main([*fit, "--resume", "--width", "0.5"]) == 0
-    assert load_config(run / "config.toml", {}).width == 0.5
     result = json.loads((run / "results.json").read_text())
     assert result["size_search"]["traces"] >= 9, result["size_search"]
+    judged = result["narrowing"]
+    assert judged["earlier_width"] == 1.0 and judged["width"] == 0.5, judged
+    kept = judged["kept"] == "new"
+    assert kept == (judged["val_loss"] < judged["earlier_val_loss"]), judged
+    assert load_config(run / "config.toml", {}).width == (0.5 if kept else 1.0)
+    earlier = load_config(run / "config.toml", {}).width
+    psnr = result["test_psnr"]
+    assert main([*fit, "--resume", "--width", "4"]) == 0
+    result = json.loads((run / "results.json").read_text())
+    judged = result["narrowing"]
+    assert judged["kept"] == "earlier", judged
+    assert judged["earlier_val_loss"] < 0.8 * judged["val_loss"], judged
+    assert load_config(run / "config.toml", {}).width == earlier
+    assert abs(result["test_psnr"] - psnr) < 0.05, (result["test_psnr"], psnr)
+    assert "narrowed_from" not in json.loads((run / "run.json").read_text())
     adam = tmp_path / "adam"
     assert main([*fit[:2], "--out", str(adam), "--field", "levelset", "--res", "16",
                  "--iterations", "1", "--batch", "1024", "--test-views", "1",
