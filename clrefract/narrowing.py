@@ -61,9 +61,13 @@ def judge_narrowing(fit) -> dict | None:
         return None
     before = float(meta.pop(MARK))
     path = fit.out / "field.npz"
-    result = None
+    result, earlier = None, None
     if path.is_file():
-        earlier = load_field_file(path, fit.box)
+        try:
+            earlier = load_field_file(path, fit.box)
+        except ClrefractError as exc:  # the new field is saved over it: say so, go on
+            fit.stream.write(f"fit: the earlier width's field is not judged: {exc}\n")
+    if earlier is not None:
         earlier_cfg = replace(fit.cfg, width=before)
         new_loss = fit.held_out_loss(run_tracer(fit.field, fit.box, fit.cfg, fit.runtime, False))
         old_loss = fit.held_out_loss(run_tracer(earlier, fit.box, earlier_cfg, fit.runtime, False))

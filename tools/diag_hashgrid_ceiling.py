@@ -52,9 +52,9 @@ def normal_errors(field, truth, box, band: float = 0.3, n: int = 20000, seed: in
     pts = pts[:n]
     normal = truth.sdf(pts)[1]
     grad = field.eval(pts)[1]
-    size = np.linalg.norm(grad, axis=1)
-    bends = size > 0  # a ramp output is flat beyond its interface: no normal to judge
-    cos = -(grad[bends] * normal[bends]).sum(1) / size[bends]
+    slope = np.linalg.norm(grad, axis=1)
+    bends = slope > 0  # a ramp output is flat beyond its interface: no normal to judge
+    cos = -(grad[bends] * normal[bends]).sum(1) / slope[bends]
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
