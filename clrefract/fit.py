@@ -1295,10 +1295,9 @@ def extend_run(out: Path, iterations: int) -> None:
 
 
 def _rewrite_config(out: Path, cfg: FitConfig) -> None:
-    # whole or not at all (under MPI the other ranks read it): a file beside it, renamed
-    new = out / "config.toml.new"
-    new.write_text(_toml(cfg))
-    new.replace(out / "config.toml")
+    # whole or not at all: under MPI the other ranks read it
+    with atomic_path(out / "config.toml", suffix=".toml") as tmp:
+        tmp.write_text(_toml(cfg))
 
 
 def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stream=None) -> Fit:

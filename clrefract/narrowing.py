@@ -15,6 +15,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from .errors import ClrefractError
+from .imageio import atomic_path
 
 MARK = "narrowed_from"  # run.json: the width of the field.npz a narrowed run is judged against
 
@@ -104,6 +105,5 @@ def _read_meta(out: Path) -> dict | None:
 
 
 def _write_meta(out: Path, meta: dict) -> None:
-    new = Path(out) / "run.json.new"
-    new.write_text(json.dumps(meta, indent=2))
-    new.replace(Path(out) / "run.json")
+    with atomic_path(Path(out) / "run.json", suffix=".json") as tmp:
+        tmp.write_text(json.dumps(meta, indent=2))
