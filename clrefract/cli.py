@@ -95,7 +95,7 @@ def _cmd_render(args) -> int:
     from .progress import Progress
     from .render import render_camera
     from .runtime import Runtime
-    from .tracer import Tracer
+    from .tracer import Tracer, TraceSettings
 
     _check_render_request(args)
     box = Box()
@@ -138,17 +138,15 @@ def _cmd_render(args) -> int:
     runtime = Runtime(args.device)
     if args.step is None:
         args.step = _run_step(Path(args.field)) or field.suggested_step
-    tracer = Tracer(
-        field,
-        box,
+    settings = TraceSettings(
         step=args.step,
         integrator=args.integrator,
         precision=args.precision,
         lanes=args.lanes,
         max_steps=args.max_steps,
-        runtime=runtime,
         skip_empty=args.skip_empty,
     )
+    tracer = Tracer(field, box, settings, runtime=runtime)
     print(
         f"rendering {len(cameras)} view(s) of {field.kind} on {runtime.info.name} "
         f"({args.precision}, {tracer.lanes} lanes, {args.integrator}, step {args.step} mm)",
@@ -196,9 +194,9 @@ def _run_step(run: Path) -> float | None:
     it was trained (a hash grid fitted at w/4 renders 5 dB worse at twice that)."""
     if not (run.is_dir() and (run / "config.toml").is_file()):
         return None
-    from .fit import load_config
+    from .fit import load_config, step_mm
 
-    return load_config(run / "config.toml", {}).step_mm
+    return step_mm(load_config(run / "config.toml", {}))
 
 
 def _field_for_render(spec: str, box):
@@ -327,8 +325,7 @@ def _check_resume_flags(run: Path, overrides: dict, config: str | None) -> None:
     """--resume continues a run with its own settings: a flag that asks for different ones
     (another field kind, say) is refused rather than silently ignored. --iterations may
     lengthen a line-search run (extend_run), --width change its interface (narrow_run)."""
-    from .fit import extend_run, load_config
-    from .narrowing import narrow_run
+    from .fit import extend_run, load_config, narrow_run
     from .parallel import world
 
     if config:

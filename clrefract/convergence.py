@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from .fields.analytic import Luneburg
-from .tracer import EVALS_PER_STEP, Tracer
+from .tracer import EVALS_PER_STEP, Tracer, TraceSettings
 
 
 def luneburg_bundle(n: int = 32, radius: float = 20.0, max_b: float = 0.9, seed: int = 0):
@@ -37,13 +37,13 @@ def luneburg_exit_errors(
     evals = EVALS_PER_STEP[integrator]
     errors, work = [], []
     for h in steps:
-        tr = Tracer(
-            Luneburg(radius=radius),
+        settings = TraceSettings(
             step=float(h),
             integrator=integrator,
             precision=precision,
             interface_steps=interface_steps,
         )
+        tr = Tracer(Luneburg(radius=radius), settings=settings)
         res = tr.trace(o, d)
         errors.append(float(np.linalg.norm(res.direction - want, axis=1).max()))
         work.append(float(evals * res.steps.mean()))

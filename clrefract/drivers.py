@@ -17,6 +17,8 @@ import os
 import sys
 from pathlib import Path
 
+from .locations import cache_dir
+
 _DONE = False
 INTEL_LIB = "libintelocl.so"
 INTEL_DEPS = ("libintlc.so.5", "libirng.so", "libimf.so", "libsvml.so")
@@ -49,8 +51,6 @@ def register_pip_drivers() -> None:
                 ctypes.CDLL(str(path), mode=ctypes.RTLD_GLOBAL)
     except OSError:
         return  # a broken install: leave the loader as it was
-    from .probe import cache_dir
-
     tag = hashlib.sha1(f"{src}|{lib}".encode()).hexdigest()[:12]
     vendors = cache_dir() / "icd" / tag
     try:

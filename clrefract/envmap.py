@@ -148,7 +148,7 @@ def procedural_image(width: int = 1024, height: int = 512, seed: int = 0) -> np.
         noise[r : r + rows_per_chunk] = (np.sin(d @ kf + ph) @ col).reshape(-1, width, 3)
     img = 0.35 * np.exp(0.6 * noise)
 
-    img *= _checker_and_grid(width, height)[..., None]
+    img *= checker_and_grid(width, height)[..., None]
 
     for ld, rad, val, tint in zip(lamp_dir, lamp_radius, lamp_value, lamp_tint, strict=True):
         ang = np.arccos(np.clip(dirs @ ld.astype(np.float32), -1.0, 1.0))
@@ -158,7 +158,7 @@ def procedural_image(width: int = 1024, height: int = 512, seed: int = 0) -> np.
     return img.astype(np.float32)
 
 
-def _checker_and_grid(width: int, height: int) -> np.ndarray:
+def checker_and_grid(width: int, height: int) -> np.ndarray:
     """(H, W) multiplier: soft 30-degree checker and dark lines every 10 degrees or more.
 
     Lines stay at least _MIN_LINE_SPACING_PX apart so small maps are not all grid.

@@ -32,10 +32,11 @@ class EtaModel:
     slice_label = "eta, fitted"
 
     def __init__(self, field, box, cfg, eta_hi: float, runtime=None):
+        from .fit import forward_settings
         from .render import run_tracer
 
         self.field, self.box, self.eta_hi = field, box, eta_hi
-        self.tracer = run_tracer(field, box, cfg, runtime)
+        self.tracer = run_tracer(field, box, forward_settings(cfg), runtime)
         self.surface_rule = f"marching cubes of eta at {self.level:.4g} (halfway to the index)"
 
     @property
@@ -158,13 +159,13 @@ def _plane_points(box, axes: tuple[int, int], res: int) -> np.ndarray:
 
 
 def _slices_figure(path: Path, model, truth, box, res: int = 96) -> None:
-    from .report import _plt
+    from .report import pyplot
 
     planes = ((0, 1), (0, 2), (1, 2))
     rows = [(model.slice_label, [model.slices_of(_plane_points(box, p, res)) for p in planes])]
     if truth is not None:
         rows.append(("eta, truth", [truth.eval(_plane_points(box, p, res))[0] for p in planes]))
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(len(rows), 3, figsize=(10, 3.3 * len(rows)), squeeze=False)
     for r, (name, sl) in enumerate(rows):
         for k, (s, title) in enumerate(zip(sl, ("xy (z=0)", "xz (y=0)", "yz (x=0)"))):
@@ -184,9 +185,9 @@ def _surface_figure(path: Path, mesh, truth_mesh) -> None:
     (grey) within 2 mm of the three central planes through the truth's centre; flat and
     quick, where a 3-D plot of thousands of triangles is neither."""
     from .metrics import sample_surface
-    from .report import _plt
+    from .report import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(1, 3, figsize=(11, 3.8))
     centre = np.mean((truth_mesh or mesh)[0], axis=0)
     for m, colour, label in ((truth_mesh, "0.6", "truth"), (mesh, "tab:blue", "extracted")):

@@ -20,14 +20,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import ClrefractError
-from .fields.analytic import SmoothSolid, Vec3, _plain, rotation_xyz
+from .fields.analytic import SmoothSolid, Vec3, as_plain, rotation_xyz
 
 ETA_RANGE = (1.2, 1.9)
 LIMIT = 40.0  # every family object lies inside [-LIMIT, LIMIT]^3
 GRAD_REL = 1e-6  # central-difference step of normals, times the bounding radius (as the kernel)
 
 
-def _central_grad(fn, pts: np.ndarray, h: float) -> np.ndarray:
+def central_grad(fn, pts: np.ndarray, h: float) -> np.ndarray:
     g = np.empty_like(pts)
     for j in range(3):
         e = np.zeros(3)
@@ -134,7 +134,7 @@ class SdfSolid(SmoothSolid):
     def sdf(self, pts):
         """Signed distance and its gradient (central differences), as SmoothSolid wants."""
         pts = np.asarray(pts, float).reshape(-1, 3)
-        return self.distance(pts), _central_grad(self.distance, pts, self.grad_step)
+        return self.distance(pts), central_grad(self.distance, pts, self.grad_step)
 
     def params(self):
         raise ClrefractError(
@@ -145,7 +145,7 @@ class SdfSolid(SmoothSolid):
     def to_dict(self) -> dict:
         from dataclasses import asdict
 
-        return {"kind": self.kind, **{k: _plain(v) for k, v in asdict(self).items()}}
+        return {"kind": self.kind, **{k: as_plain(v) for k, v in asdict(self).items()}}
 
     def kernel_defines(self) -> dict:
         return {f"SHAPE_{self.kind.upper().replace('-', '_')}": 1}
@@ -183,7 +183,7 @@ class SdfSolid(SmoothSolid):
         v = verts - r
         for _ in range(project):
             f = self.local_distance(v)
-            g = _central_grad(self.local_distance, v, 1e-5 * self.bounding_radius)
+            g = central_grad(self.local_distance, v, 1e-5 * self.bounding_radius)
             v = v - (f / np.maximum((g * g).sum(1), 1e-12))[:, None] * g
         return v @ self.world_to_local + np.asarray(self.center), faces.astype(np.int64)
 

@@ -16,7 +16,7 @@ beyond rounding.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -26,7 +26,7 @@ from .fields.base import Box, Field
 from .limits import check_device_buffer
 from .loss import photometric_loss
 from .runtime import Runtime
-from .tracer import InOut, Out, Status, Tracer, renders_black
+from .tracer import InOut, Out, Status, Tracer, TraceSettings, renders_black
 
 
 @dataclass
@@ -100,52 +100,42 @@ def steps_to_reverse(steps: np.ndarray, status: np.ndarray, mu: np.ndarray) -> n
 
 
 class GradientEngine:
-    """Photometric loss and its gradient for `field` (its data() are the parameters)."""
+    """Photometric loss and its gradient for `field` (its data() are the parameters),
+    traced as `settings` (TraceSettings) say: rkn4 steps, and an adjoint of None taken for
+    "continuous". loss_space: the photometric loss's colour space (loss.photometric_loss)."""
 
     def __init__(
         self,
         field: Field,
         box: Box,
-        step: float = 0.5,
-        precision: str = "float32",
-        lanes: int | None = None,
+        settings: TraceSettings | None = None,
+        *,
         runtime: Runtime | None = None,
-        queues: int = 1,
-        max_steps: int | None = None,
         loss_space: str = "srgb",
-        checkpoint_every: int = 0,
-        growth_max: float = 0.0,
-        adjoint: str = "continuous",
-        skip_empty: bool = False,
-        occupancy_res: int = 32,
     ):
+        settings = settings or TraceSettings()
+        settings = replace(settings, adjoint=settings.adjoint or "continuous")
+        adjoint, queues = settings.adjoint, settings.queues
+        checkpoint_every, growth_max = settings.checkpoint_every, settings.growth_max
         if adjoint not in ADJOINTS:
             raise ClrefractError(f"adjoint must be one of {ADJOINTS}, got {adjoint!r}")
+        if settings.integrator != "rkn4":
+            raise ClrefractError(
+                f"the backward passes reverse rkn4 steps, not {settings.integrator!r}"
+            )
+        self.settings = settings
         self.runtime = runtime or Runtime(queues=queues)
         if len(self.runtime.queues) < queues:
             raise ClrefractError(f"runtime has {len(self.runtime.queues)} queues, need {queues}")
         self.queues = self.runtime.queues[:queues]
         occupancy = None
-        if skip_empty:
+        if settings.skip_empty:
             # exact by default: a level set's band (eta is flat off it whatever phi does),
             # else every cell; fits replace it by their rule (fit_occupancy.py)
             from .occupancy import distance_of, exact_live_cells
 
-            occupancy = distance_of(exact_live_cells(field, box, occupancy_res))
-        self.tracer = Tracer(
-            field,
-            box,
-            step=step,
-            integrator="rkn4",
-            precision=precision,
-            lanes=lanes,
-            max_steps=max_steps,
-            runtime=self.runtime,
-            adjoint=adjoint,
-            skip_empty=skip_empty,
-            occupancy_res=occupancy_res,
-            occupancy=occupancy,
-        )
+            occupancy = distance_of(exact_live_cells(field, box, settings.occupancy_res))
+        self.tracer = Tracer(field, box, settings, runtime=self.runtime, occupancy=occupancy)
         self.field, self.box, self.loss_space = field, box, loss_space
         if checkpoint_every < 0:
             raise ClrefractError(f"checkpoint_every must be >= 0, got {checkpoint_every}")

@@ -122,7 +122,7 @@ def project(cam: Camera, pts: np.ndarray):
     return row, col, depth
 
 
-def _cone_distances(cameras: list[Camera], dists: list[np.ndarray], p: np.ndarray):
+def cone_distances(cameras: list[Camera], dists: list[np.ndarray], p: np.ndarray):
     """(views, n): signed distance (mm, + inside) of points to each view's silhouette cone,
     read bilinearly from the mask's distance transform at the point's depth; inf where a
     point is behind the view. Beyond the frame the mask's edge goes on: air where the edge is
@@ -170,7 +170,7 @@ def hull_distance(
     dists = dists or [mask_distance(m) for m in masks]
     out = np.empty(len(pts))
     for a in range(0, len(pts), chunk):
-        sd = _cone_distances(cameras, dists, pts[a : a + chunk])
+        sd = cone_distances(cameras, dists, pts[a : a + chunk])
         out[a : a + chunk] = _kth(sd, tolerance, nearest=True)
     return out
 
@@ -190,12 +190,13 @@ def carving_views(
     `depth` mm, more than `carve` of the core the views agree on (points deeper than `depth`
     inside the hull of all views but a fifth); a view with a sound mask carves none of it.
     On the quick protocol (80 views, 64^3 nodes over the object's box) this finds 8 of the
-    prism's views and 4 of the vase's, and none of the other scenes' (tools/diag_hull.py)."""
+    prism's views and 4 of the vase's, and none of the other scenes' (measured with a
+    since-removed study script; README, Fitting)."""
     dists = dists or [mask_distance(m) for m in masks]
     carved = np.zeros(len(cameras))
     core = 0
     for a in range(0, len(pts), chunk):
-        sd = _cone_distances(cameras, dists, pts[a : a + chunk])
+        sd = cone_distances(cameras, dists, pts[a : a + chunk])
         inner = _kth(sd, CORE_TOLERANCE) > depth
         core += int(inner.sum())
         carved += (sd[:, inner] < -depth).sum(axis=1)

@@ -15,9 +15,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .baselines.composite import ray_samples
 from .fields.base import Box
 from .hull import Hull
+from .samples import ray_samples
 
 RIM_PIXELS = 3  # rays this close to a mask's edge hold the shape; inside it they rarely bind
 INTERIOR_SHARE = 0.1  # of the rays deeper inside a mask, checked too (thin parts)
@@ -29,7 +29,7 @@ FLOW_TIMES = (110.0, 330.0)
 PUSH_GAIN = 8.0
 CHECK_EVERY = 5  # flow steps between checks of the rays
 MAX_RES = 64  # finer grids take the flow of this one (its steps grow as 1 / cell^2)
-MARGIN = 3.0  # cells outside the hull where a ray's samples are kept (_RayDepths)
+MARGIN = 3.0  # cells outside the hull where a ray's samples are kept (RayDepths)
 
 
 def tighten(hull: Hull, box: Box, cameras, masks, seed: int = 0, times=FLOW_TIMES) -> list:
@@ -57,10 +57,10 @@ def _tighten(hull: Hull, box: Box, cameras, masks, seed: int, times) -> list:
     res = hull.distance.shape
     h = (np.asarray(box.hi) - np.asarray(box.lo)) / (np.asarray(res) - 1)
     bound = hull.distance
-    rays = _RayDepths(
+    rays = RayDepths(
         box,
         res,
-        *_mask_rays(cameras, masks, seed),
+        *mask_edge_rays(cameras, masks, seed),
         0.5 * float(h.min()),
         bound,
         MARGIN * hull.width,
@@ -85,7 +85,7 @@ def _tighten(hull: Hull, box: Box, cameras, masks, seed: int, times) -> list:
     return out
 
 
-def _mask_rays(cameras, masks, seed: int):
+def mask_edge_rays(cameras, masks, seed: int):
     """Rays of the pixels near each mask's edge, and a share of those inside it."""
     rng = np.random.default_rng(seed)
     origins, dirs = [], []
@@ -98,7 +98,7 @@ def _mask_rays(cameras, masks, seed: int):
     return np.concatenate(origins), np.concatenate(dirs)
 
 
-class _RayDepths:
+class RayDepths:
     """The largest value a grid takes along each ray across the box, and where. The rays'
     samples are made once, and only those where `bound` is above -`margin` are kept: the
     flow's shape stays under the hull, so it peaks elsewhere unless it left the ray by more
@@ -119,7 +119,7 @@ class _RayDepths:
             coords.append(g[near_hull])
             rays.append(s.ray[near_hull] + a)
         self.g = np.concatenate(coords) if coords else np.empty((0, 3))
-        self._weights = _trilinear(self.g, tuple(res))
+        self._weights = trilinear_matrix(self.g, tuple(res))
         self._set(np.concatenate(rays) if rays else np.empty(0, np.int64), len(origins))
 
     def _set(self, ray: np.ndarray, n: int) -> None:
@@ -145,7 +145,7 @@ class _RayDepths:
         return value, where
 
 
-def _trilinear(g: np.ndarray, shape: tuple):
+def trilinear_matrix(g: np.ndarray, shape: tuple):
     """Sparse (points, nodes) matrix whose product with a grid is its trilinear value at the
     points g (node coordinates; beyond the edge, the edge's: map_coordinates' order=1,
     mode="nearest"). The flow checks its rays every few steps at the same points: on the

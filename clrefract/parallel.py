@@ -21,10 +21,8 @@ from __future__ import annotations
 
 import os
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -218,7 +216,7 @@ class ShardedEngine:
         mine = subtrees(owned(self.ranks.rank, self.ranks.size, c), c)
         sums = [tree_sum(a, w, leaves) for a, w in mine]
         t0 = time.perf_counter()
-        known, rays = self._gather(mine, sums, n_par + 1, rays)
+        known, rays = self.gather(mine, sums, n_par + 1, rays)
         self.comm_seconds += time.perf_counter() - t0
         total = tree_sum(0, c, known)
         if not np.all(np.isfinite(total)):
@@ -228,7 +226,7 @@ class ShardedEngine:
         steps = sum(item[5] for item in rays)
         return GradientResult(float(total[n_par]), total[:n_par], *cat[:3], steps, cat[3])
 
-    def _gather(self, mine, sums, length, rays):
+    def gather(self, mine, sums, length, rays):
         """Every rank's subtree sums (Allgatherv of the float64 vectors) and per-ray results
         (pickled; a few numbers per ray)."""
         comm = self.ranks.comm
@@ -251,60 +249,3 @@ def shard(engine, chunks: int = 16, ranks: Ranks | None = None):
     """The engine itself for one process; split over the ranks under MPI."""
     ranks = ranks or world()
     return engine if ranks.size == 1 else ShardedEngine(engine, ranks, chunks)
-
-
-# --- the run -----------------------------------------------------------------------------
-def run_fit(dataset, out, cfg, resume: bool = False, stream=None) -> dict:
-    """`clrefract fit` over the ranks. Rank 0 prepares the run folder (start or resume),
-    which leaves its checkpoint (a start writes that of iteration 0); the other ranks load
-    that checkpoint, exactly as a resumed run would, so all start from the same parameters.
-    Returns rank 0's results ({} elsewhere)."""
-    from .fit import load_config, prepare_fit
-
-    ranks = world()
-    out = Path(out)
-    check_chunks(cfg.chunks)  # on every rank, before any of them waits for another
-    try:
-        if ranks.root:
-            error = None
-            try:
-                fit = prepare_fit(dataset, out, cfg, resume, stream)
-            except ClrefractError as exc:
-                error = str(exc)
-            ranks.share_from_root(error)
-            if error is not None:
-                raise ClrefractError(error)
-            return fit.run()
-        error = ranks.share_from_root(None)
-        if error is not None:  # rank 0 names the problem; the others just stop
-            raise ClrefractError(f"rank {ranks.rank}: rank 0 failed")
-        cfg = load_config(out / "config.toml", {}) if resume else cfg
-        scratch = tempfile.TemporaryDirectory(prefix=f"clrefract-rank{ranks.rank}-")
-        with open(os.devnull, "w") as quiet, scratch:
-            fit = _follower(dataset, out, cfg, quiet)
-            fit.load_checkpoint()
-            fit.out = Path(scratch.name)  # metrics and field.npz of this rank: thrown away
-            fit.run()
-        return {}
-    except ClrefractError:
-        raise  # every rank meets these at the same point (an interrupt, a bad number)
-    except BaseException:
-        import traceback
-
-        traceback.print_exc()
-        ranks.abort(1)
-        raise
-
-
-def _follower(dataset, out, cfg, stream):
-    """A rank other than 0: it fits like rank 0 but writes nothing of the run."""
-    from .fit import Fit
-
-    class Follower(Fit):
-        def save_checkpoint(self) -> None:
-            pass
-
-        def finish(self) -> dict:
-            return {}
-
-    return Follower(dataset, out, cfg, stream=stream)

@@ -8,7 +8,7 @@ import numpy as np
 
 from .cameras import Camera
 from .envmap import EnvMap
-from .tracer import Status, Tracer, renders_black
+from .tracer import Status, Tracer, TraceSettings, renders_black
 
 
 @dataclass
@@ -37,19 +37,10 @@ def render_camera(
     return RenderResult(out.reshape(camera.height, camera.width, 3), counts, steps)
 
 
-def run_tracer(field, box, cfg, runtime=None, interface_steps: bool = True) -> Tracer:
-    """A fitted field's forward tracer, as its run traces it (step, precision, lanes),
-    flying straight through the cells where eta is constant (sampled on the device,
-    occupancy.py). On the quick sphere's hash grid the test views render 3.4x faster; in
-    float64 they come out the same to the bit, in float32 10-16 pixels a view stray from
-    float64 with skipping as without (README, Fitting). `interface_steps` as Tracer's."""
-    return Tracer(
-        field,
-        field.tracing_box(box),
-        step=cfg.step_mm,
-        precision=cfg.precision,
-        lanes=cfg.lanes or None,
-        runtime=runtime,
-        interface_steps=interface_steps,
-        skip_empty=True,
-    )
+def run_tracer(field, box, settings: TraceSettings, runtime=None) -> Tracer:
+    """A fitted field's forward tracer, as its run traces it (fit.forward_settings: its step,
+    precision and lanes, flying straight through the cells where eta is constant, sampled
+    on the device, occupancy.py). On the quick sphere's hash grid the test views render
+    3.4x faster; in float64 they come out the same to the bit, in float32 10-16 pixels a
+    view stray from float64 with skipping as without."""
+    return Tracer(field, field.tracing_box(box), settings, runtime=runtime)

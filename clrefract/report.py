@@ -12,7 +12,7 @@ from .imageio import atomic_path, write_exr_rgb, write_png_srgb
 from .metrics import psnr_ssim
 
 
-def _plt():
+def pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
@@ -25,7 +25,7 @@ def plot_metrics(metrics_path: Path, out_png: Path) -> None:
     rows = [json.loads(ln) for ln in Path(metrics_path).read_text().splitlines() if ln.strip()]
     if not rows:
         return
-    plt = _plt()
+    plt = pyplot()
     it = [r["iteration"] for r in rows]
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
     ax[0].semilogy(it, [r["loss"] for r in rows], lw=0.8)
@@ -56,7 +56,7 @@ def eta_slices(field, box, res: int = 128):
 
 
 def plot_slices(field, box, out_png: Path, truth=None, vmax: float | None = None) -> None:
-    plt = _plt()
+    plt = pyplot()
     rows = [("fitted", eta_slices(field, box))]
     if truth is not None:
         rows.append(("ground truth", eta_slices(truth, box)))
@@ -77,11 +77,11 @@ def plot_slices(field, box, out_png: Path, truth=None, vmax: float | None = None
 def render_test_views(fit, out_dir: Path | None, limit: int = -1, tracer=None) -> list[dict]:
     """Render the dataset's test views with the fitted field (or `tracer`'s); PSNR and SSIM
     per view. Images go to out_dir (rendering beside the photograph) unless it is None."""
-    from .render import render_camera, run_tracer
+    from .render import render_camera
 
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
-    tracer = tracer or run_tracer(fit.field, fit.box, fit.cfg, fit.runtime)
+    tracer = tracer or fit.forward_tracer(fit.field)
     env = fit.ds.envmap()
     cams = fit.ds.test if limit < 0 else fit.ds.test[:limit]
     rows = []
@@ -136,9 +136,7 @@ def score_field(fit, field=None, out_dir: Path | None = None, surface: Path | No
     field = field or fit.field
     result: dict = {"test_psnr": None, "test_ssim": None, "views": []}
     # evaluates eta on the device too: hash grids are slow in NumPy
-    from .render import run_tracer
-
-    tracer = _guarded(result, "tracer", lambda: run_tracer(field, fit.box, fit.cfg, fit.runtime))
+    tracer = _guarded(result, "tracer", lambda: fit.forward_tracer(field))
     if tracer is None:
         return result
     views = _guarded(
@@ -240,19 +238,12 @@ def write_fit_report(fit) -> dict:
     out = fit.out
     result: dict = {
         "iterations": fit.it,
-        "best_iteration": fit.best[1],
-        "best_val_loss": float(fit.best[0]) if np.isfinite(fit.best[0]) else None,
+        "best_iteration": fit.best.iteration,
+        "best_val_loss": float(fit.best.loss) if fit.best.found else None,
     }
-    if getattr(fit, "stopped", None):
-        result["stopped"] = fit.stopped
-    if getattr(fit, "patience_stop", None):
-        result["stopped_without_progress"] = fit.patience_stop
-    if getattr(fit, "size_search", None):
-        result["size_search"] = fit.size_search
-    if getattr(fit, "final_refit", None):
-        result["final_refit"] = fit.final_refit
-    if getattr(fit, "narrowing", None):
-        result["narrowing"] = fit.narrowing
+    for key in ("stopped", "stopped_without_progress", "size_search", "final_refit", "narrowing"):
+        if fit.record.get(key):
+            result[key] = fit.record[key]
     rows = _guarded(result, "metrics.jsonl", lambda: _metric_rows(out / "metrics.jsonl")) or []
     result["train_seconds"] = float(sum(r.get("seconds", 0.0) for r in rows))
     result["final_loss"] = rows[-1].get("loss") if rows else None

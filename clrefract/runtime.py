@@ -15,13 +15,13 @@ import re
 import time
 import warnings
 from dataclasses import dataclass
-from importlib import resources
-from pathlib import Path
 
 import numpy as np
 
+from .drivers import register_pip_drivers
 from .errors import BuildError, ClrefractError
-from .probe import WIDTHS, cache_dir, lane_report, why_unusable
+from .locations import cache_dir, kernel_source
+from .probe import WIDTHS, lane_report, why_unusable
 
 INSTALL_HINT = (
     "Install an OpenCL driver: `pip install 'clrefract[pocl]'` or `pip install 'clrefract[cpu]'` "
@@ -45,28 +45,12 @@ def set_verbose(on: bool) -> None:
 
 
 def _cl():
-    from .drivers import register_pip_drivers
-
     register_pip_drivers()
     try:
         import pyopencl as cl
     except ImportError as exc:  # pragma: no cover - dependency is declared
         raise ClrefractError(f"pyopencl is not importable ({exc}). {INSTALL_HINT}") from None
     return cl
-
-
-def kernel_source(name: str) -> str:
-    """Text of one OpenCL source shipped in the package (`kernels_cl/` in the repository).
-
-    Code imported from a checkout uses that checkout's kernels_cl/ beside it: an installed
-    package (editable ones included) may map clrefract.kernels_cl to another checkout."""
-    beside = Path(__file__).resolve().parent.parent / "kernels_cl" / name
-    if beside.is_file():
-        return beside.read_text()
-    try:
-        return resources.files("clrefract.kernels_cl").joinpath(name).read_text()
-    except (FileNotFoundError, ModuleNotFoundError) as exc:
-        raise ClrefractError(f"kernel source {name!r} is missing from the package: {exc}") from None
 
 
 @dataclass(frozen=True)

@@ -98,7 +98,7 @@ def _prism_offsets(solid) -> np.ndarray:
     return np.array([hs, hs, hs, 0.5 * solid.length, 0.5 * solid.length])
 
 
-def _drop_F(p: np.ndarray, R: float, H: float) -> np.ndarray:
+def drop_F(p: np.ndarray, R: float, H: float) -> np.ndarray:
     """Inside function of the drop (local frame), positive exactly inside; p (..., 3)."""
     u, w = (H + p[..., 2]) / H, (H - p[..., 2]) / H
     return 0.25 * R * R * u * w**3 - p[..., 0] ** 2 - p[..., 1] ** 2
@@ -112,7 +112,7 @@ def inside_solid(solid, pts: np.ndarray) -> np.ndarray:
         return (loc**2).sum(1) < solid.radius**2
     if isinstance(solid, Prism):
         return np.all(loc @ _PRISM_N.T < _prism_offsets(solid), axis=1)
-    return _drop_F(loc, solid.R, solid.H) > 0
+    return drop_F(loc, solid.R, solid.H) > 0
 
 
 def drop_normal(p: np.ndarray, R: float, H: float) -> np.ndarray:
@@ -193,7 +193,7 @@ def _hit_drop_dense(o, d, inside, R, H):
     q = o + s0 * d
     n = int(math.ceil((s1 - s0) / (min(R, H) / 4000))) + 1
     s = np.linspace(0.0, s1 - s0, max(n, 2))
-    f = _drop_F(q[None] + s[:, None] * d[None], R, H)
+    f = drop_F(q[None] + s[:, None] * d[None], R, H)
     other = f <= 0 if inside else f > 0
     if not other.any():
         return None
@@ -204,7 +204,7 @@ def _hit_drop_dense(o, d, inside, R, H):
         if hi - lo <= tol:
             break
         mid = 0.5 * (lo + hi)
-        fm = float(_drop_F(q + mid * d, R, H))
+        fm = float(drop_F(q + mid * d, R, H))
         if (fm <= 0) if inside else (fm > 0):
             hi = mid
         else:

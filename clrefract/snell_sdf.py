@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from .errors import ClrefractError
-from .family import SdfSolid, _central_grad
+from .family import SdfSolid, central_grad
 from .fields.base import Box
 from .runtime import Runtime
 from .snell import (
@@ -92,7 +92,7 @@ def _hit_dense(shape: SdfSolid, o, d, inside: bool, spacing: float):
         else:
             lo = mid
     t = 0.5 * (lo + hi)
-    g = _central_grad(shape.local_distance, (o + t * d)[None], shape.grad_step)[0]
+    g = central_grad(shape.local_distance, (o + t * d)[None], shape.grad_step)[0]
     return t, g / np.linalg.norm(g)
 
 

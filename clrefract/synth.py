@@ -79,7 +79,7 @@ class MakeOptions:
 
 def _ray_renderer(name: str, obj, box: Box, runtime):
     """A function (origins, dirs) -> (exit directions, ok mask)."""
-    from .tracer import Status, Tracer
+    from .tracer import Status, Tracer, TraceSettings
 
     if name in FAMILY or name in SOLIDS:
         from .snell import SnellRenderer
@@ -88,15 +88,8 @@ def _ray_renderer(name: str, obj, box: Box, runtime):
         cls = SdfSnellRenderer if name in FAMILY else SnellRenderer
         renderer = cls(obj, box, precision="float64", runtime=runtime)
     else:
-        renderer = Tracer(
-            obj,
-            box,
-            step=0.05,
-            integrator="rkn4",
-            precision="float64",
-            runtime=runtime,
-            max_steps=20000,
-        )
+        settings = TraceSettings(step=0.05, integrator="rkn4", precision="float64", max_steps=20000)
+        renderer = Tracer(obj, box, settings, runtime=runtime)
 
     def trace(o, d):
         r = renderer.trace(o, d)

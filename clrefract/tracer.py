@@ -70,47 +70,77 @@ class TraceResult:
     last_velocity: np.ndarray  # (n, 3) v there (equal to the exit v: the margin is eta = 1)
 
 
-class Tracer:
-    """Traces rays through `field` inside `box` with a fixed step of the optical-path parameter.
+@dataclass(frozen=True)
+class TraceSettings:
+    """How rays are traced: a Tracer's settings, and a GradientEngine's (which passes them
+    to its tracer). Variants: dataclasses.replace.
 
     step: the increment of sigma (arc length / eta) per integrator step, in mm.
+    integrator: one of INTEGRATORS (a GradientEngine: rkn4 only).
     lanes: rays per work-item; None picks the device's default (16 on CPUs, 1 on GPUs).
-    adjoint: also build the backward-pass kernel (fields with parameters only): True or
+    max_steps: the cap of steps per ray; None: a few box diagonals (limits.max_steps_for).
+    adjoint: also build the backward-pass kernel (fields with parameters only):
         "continuous" the adjoint-state pass, "discrete" also the exact discrete adjoint
-        (adjoint_discrete.cl: rkn4 only).
+        (adjoint_discrete.cl: rkn4 only); None or "": forward only (a GradientEngine takes
+        that for "continuous").
     tol: with integrator "dopri5", the local error per step (mm of position, and of v) that
         its adaptive step keeps to; `step` is then the largest step, and TraceResult.steps
         counts attempted steps (rejected ones cost evaluations too). Forward only: the
-        backward pass replays fixed steps, so adjoint=True refuses it.
+        backward pass replays fixed steps, so an adjoint refuses it.
     skip_empty: rays fly straight through the cells of an occupancy_res^3 grid where eta is
         constant (clrefract/occupancy.py), instead of stepping, in whole steps so that they
         stay on the lattice of steps they would have taken. The continuous backward pass
         flies back the same way (adjoint.cl); the discrete adjoint refuses it. A fit replaces
-        the occupancy as the field trains (set_occupancy). occupancy: the grid to start
-        from (occupancy.empty_distance's), else built from the field.
+        the occupancy as the field trains (Tracer.set_occupancy).
     interface_steps: shorten steps that would cross a field's known kink (analytic fields:
         the Luneburg surface, a solid's band edges; a level set's band edges) so that they
         land on it and the scheme keeps its order there; False integrates across it (first
         order at the kink). Off with adjoint (fits): the backward passes take fixed steps.
+    queues, checkpoint_every, growth_max: the GradientEngine's (a Tracer ignores them):
+        command queues to spread the rays over; forward states kept every so many steps
+        for the backward pass (0: none, constant memory; the discrete adjoint's default
+        segment); the factor of growth of a ray's adjoint that stops its backward pass
+        (0: never).
     """
+
+    step: float = 0.5
+    integrator: str = "rkn4"
+    precision: str = "float32"
+    lanes: int | None = None
+    max_steps: int | None = None
+    adjoint: str | None = None
+    interface_steps: bool = True
+    tol: float | None = None
+    skip_empty: bool = False
+    occupancy_res: int = 32
+    queues: int = 1
+    checkpoint_every: int = 0
+    growth_max: float = 0.0
+
+
+ADJOINT_KINDS = (None, "", "continuous", "discrete")  # TraceSettings.adjoint's values
+
+
+class Tracer:
+    """Traces rays through `field` inside `box` with a fixed step of the optical-path
+    parameter, as `settings` (TraceSettings) say. occupancy: with skip_empty, the grid to
+    start from (occupancy.empty_distance's), else built from the field."""
 
     def __init__(
         self,
         field: Field,
         box: Box | None = None,
-        step: float = 0.5,
-        integrator: str = "rkn4",
-        precision: str = "float32",
-        lanes: int | None = None,
-        max_steps: int | None = None,
+        settings: TraceSettings | None = None,
+        *,
         runtime: Runtime | None = None,
-        adjoint: bool = False,
-        interface_steps: bool = True,
-        tol: float | None = None,
-        skip_empty: bool = False,
-        occupancy_res: int = 32,
         occupancy: np.ndarray | None = None,
     ):
+        settings = settings or TraceSettings()
+        self.settings = settings
+        step, integrator, precision = settings.step, settings.integrator, settings.precision
+        lanes, max_steps, adjoint = settings.lanes, settings.max_steps, settings.adjoint
+        tol, skip_empty, occupancy_res = settings.tol, settings.skip_empty, settings.occupancy_res
+        interface_steps = settings.interface_steps
         box = box or Box()
         # a ray bent inside the box rarely travels more than a few diagonals
         default_cap = max_steps_for(step, float(np.linalg.norm(box.size)))
@@ -183,8 +213,10 @@ class Tracer:
             self.occupancy = np.full((res,) * 3, 0, np.int32)  # every cell live until set
             defines.update(SKIP_EMPTY=1, OCC_N=res)
         sources = ["common.h", field.source, "trace.cl"]
-        if adjoint not in (False, True, "continuous", "discrete"):
-            raise ClrefractError(f"adjoint must be 'continuous' or 'discrete', got {adjoint!r}")
+        if adjoint not in ADJOINT_KINDS:
+            raise ClrefractError(
+                f"adjoint must be 'continuous', 'discrete' or None (forward only), got {adjoint!r}"
+            )
         if adjoint == "discrete" and integrator != "rkn4":
             raise ClrefractError(f"the discrete adjoint reverses rkn4 steps, not {integrator!r}")
         if adjoint:

@@ -23,7 +23,7 @@ import numpy as np
 
 from .fields.analytic import Blobs, Luneburg, Sphere
 from .fields.base import Box
-from .tracer import EVALS_PER_STEP, Status, Tracer, renders_black
+from .tracer import EVALS_PER_STEP, Status, Tracer, TraceSettings, renders_black
 
 PSNR_CAP = 200.0  # dB written for an image identical to the reference
 REF_TOL = 1e-11  # float64 Dormand-Prince: agrees with RK4 at 0.02 mm to ~1e-9
@@ -122,7 +122,7 @@ class Scene:
         self.grad = None
 
     def tracer(self, **kw) -> Tracer:
-        return Tracer(self.field, self.box, runtime=self.runtime, **kw)
+        return Tracer(self.field, self.box, TraceSettings(**kw), runtime=self.runtime)
 
     def render(self, tracer: Tracer) -> np.ndarray:
         from .render import render_camera
@@ -163,9 +163,8 @@ class Scene:
         from .gradient import GradientEngine
 
         truth, p0, u, env, target, fd = self.gradient_check(finest)
-        eng = GradientEngine(
-            self.field, self.box, step=step, precision=precision, runtime=self.runtime
-        )
+        settings = TraceSettings(step=step, precision=precision)
+        eng = GradientEngine(self.field, self.box, settings, runtime=self.runtime)
         try:
             eng.set_params(p0)
             g = eng.loss_and_grad(self.o, self.d, target, env).grad

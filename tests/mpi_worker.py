@@ -17,6 +17,7 @@ def gradient_case(dataset: Path):
     from clrefract.dataset import Dataset
     from clrefract.fields.voxel import VoxelGrid
     from clrefract.gradient import GradientEngine
+    from clrefract.tracer import TraceSettings
 
     ds = Dataset(dataset)
     origins, dirs, rgb = ds.rays_and_pixels("train")
@@ -25,7 +26,7 @@ def gradient_case(dataset: Path):
     field = VoxelGrid(np.ones((16, 16, 16)), ds.box, eta_max=1.6)
     # a lumpy field, so that rays bend and every chunk has a different gradient
     params = 1.0 + 0.04 * rng.uniform(size=16**3)
-    engine = GradientEngine(field, ds.box, step=2.0, precision="float64")
+    engine = GradientEngine(field, ds.box, TraceSettings(step=2.0, precision="float64"))
     engine.set_params(params)
     return engine, origins[idx], dirs[idx], rgb[idx], ds.envmap()
 

@@ -7,7 +7,7 @@ import pytest
 from clrefract.errors import ClrefractError
 from clrefract.fields.analytic import Luneburg, Sphere
 from clrefract.fields.voxel import VoxelGrid
-from clrefract.tracer import EVALS_PER_STEP, Status, Tracer
+from clrefract.tracer import EVALS_PER_STEP, Status, Tracer, TraceSettings
 
 
 def _rays(n=24, radius=18.0):
@@ -18,7 +18,7 @@ def _rays(n=24, radius=18.0):
 
 
 def _run(f, o, d, ref, **kw):
-    res = Tracer(f, precision="float64", **kw).trace(o, d)
+    res = Tracer(f, settings=TraceSettings(precision="float64", **kw)).trace(o, d)
     assert np.all(res.status == Status.EXITED)
     evals = EVALS_PER_STEP[kw["integrator"]] * res.steps.mean()
     return np.linalg.norm(res.direction - ref, axis=1).max(), evals
@@ -29,7 +29,11 @@ def test_adaptive_beats_fixed_rk4_on_the_glass_sphere():
     everywhere; the adaptive pair shortens them only there."""
     f = Sphere(radius=20.0, eta=1.5, width=1.0)
     o, d = _rays()
-    ref = Tracer(f, step=0.02, integrator="rk4", precision="float64").trace(o, d).direction
+    ref = (
+        Tracer(f, settings=TraceSettings(step=0.02, integrator="rk4", precision="float64"))
+        .trace(o, d)
+        .direction
+    )
     e_rk4, n_rk4 = _run(f, o, d, ref, integrator="rk4", step=0.0625)
     e_dp, n_dp = _run(f, o, d, ref, integrator="dopri5", step=4.0, tol=1e-7)
     assert e_dp < e_rk4, (e_dp, e_rk4)
@@ -48,6 +52,6 @@ def test_adaptive_error_follows_the_tolerance():
 def test_adaptive_is_forward_only():
     vox = VoxelGrid(np.ones((8, 8, 8)))
     with pytest.raises(ClrefractError, match="forward only"):
-        Tracer(vox, box=vox.box, integrator="dopri5", tol=1e-6, adjoint=True)
+        Tracer(vox, vox.box, TraceSettings(integrator="dopri5", tol=1e-6, adjoint="continuous"))
     with pytest.raises(ClrefractError, match="dopri5"):
-        Tracer(vox, box=vox.box, integrator="rk4", tol=1e-6)
+        Tracer(vox, vox.box, TraceSettings(integrator="rk4", tol=1e-6))

@@ -9,6 +9,7 @@ from clrefract.fields.voxel import VoxelGrid
 from clrefract.gradcheck import directional_errors, lens_scene, smooth_env
 from clrefract.gradient import GradientEngine
 from clrefract.runtime import Runtime
+from clrefract.tracer import TraceSettings
 
 BOX = Box(margin=4.0)
 
@@ -23,7 +24,9 @@ def fd_errors(interp, step, n_dirs=3, seed=1, checkpoint_every=0, eps=1e-6, z_no
         vals = np.ascontiguousarray(vals[:, :, z_nodes])
     field = VoxelGrid(vals, BOX, interp)
     eng = GradientEngine(
-        field, BOX, step=step, precision="float64", lanes=4, checkpoint_every=checkpoint_every
+        field,
+        BOX,
+        TraceSettings(step=step, precision="float64", lanes=4, checkpoint_every=checkpoint_every),
     )
     res = eng.loss_and_grad(o, d, target, env)
     p0 = vals.ravel().copy()
@@ -67,7 +70,9 @@ def test_checkpoints_tame_the_drift_through_a_sharp_interface():
     p99 = []
     for every in (0, 16, 4):
         eng = GradientEngine(
-            VoxelGrid(vals, BOX), BOX, step=1.0, precision="float64", checkpoint_every=every
+            VoxelGrid(vals, BOX),
+            BOX,
+            TraceSettings(step=1.0, precision="float64", checkpoint_every=every),
         )
         p99.append(np.percentile(eng.loss_and_grad(o, d, target, env).drift, 99))
     # drift measured where the ray restarts from a checkpoint: it shrinks with the segment
@@ -90,7 +95,10 @@ def test_gradient_does_not_depend_on_the_number_of_queues():
     for q in (1, 3):
         rt = Runtime(queues=q)
         eng = GradientEngine(
-            VoxelGrid(vals, BOX), BOX, step=1.0, precision="float64", runtime=rt, queues=q
+            VoxelGrid(vals, BOX),
+            BOX,
+            TraceSettings(step=1.0, precision="float64", queues=q),
+            runtime=rt,
         )
         r = eng.loss_and_grad(o, d, target, env)
         grads.append(r.grad)
@@ -116,7 +124,9 @@ def test_device_buffers_do_not_grow_with_the_step_count(precision, monkeypatch):
     vals, o, d, env, target = lens_scene(n_rays=200)
     totals = []
     for step in (2.0, 0.25):
-        eng = GradientEngine(VoxelGrid(vals, BOX), BOX, step=step, precision=precision)
+        eng = GradientEngine(
+            VoxelGrid(vals, BOX), BOX, TraceSettings(step=step, precision=precision)
+        )
         monkeypatch.setattr(cl, "Buffer", spy)
         sizes.clear()
         r = eng.loss_and_grad(o, d, target, env)
@@ -149,7 +159,9 @@ def test_bspline_adjoint_is_the_same_for_every_lane_width_and_precision():
     grads = {}
     for precision, lanes in [("float64", 4), ("float64", 1), ("float64", 8), ("float32", 16)]:
         eng = GradientEngine(
-            VoxelGrid(vals, BOX, "bspline"), BOX, step=1.0, precision=precision, lanes=lanes
+            VoxelGrid(vals, BOX, "bspline"),
+            BOX,
+            TraceSettings(step=1.0, precision=precision, lanes=lanes),
         )
         grads[precision, lanes] = eng.loss_and_grad(o, d, target, env).grad
     ref = grads["float64", 4]
@@ -174,7 +186,7 @@ def test_a_terminal_loss_of_exit_directions_has_the_finite_difference_gradient()
 
     vals, o, d, env, target = lens_scene()
     field = VoxelGrid(vals, BOX, "smoothstep")
-    eng = GradientEngine(field, BOX, step=0.5, precision="float64", lanes=4)
+    eng = GradientEngine(field, BOX, TraceSettings(step=0.5, precision="float64", lanes=4))
     aim = d + np.random.default_rng(0).normal(scale=0.05, size=d.shape)
     aim /= np.linalg.norm(aim, axis=1, keepdims=True)
 

@@ -15,7 +15,7 @@ from clrefract.fields.voxel import VoxelGrid
 from clrefract.gradcheck import directional_errors, lens_scene, smooth_env
 from clrefract.gradient import GradientEngine, backward_state_bytes, discrete_segment
 from clrefract.runtime import default_runtime
-from clrefract.tracer import Tracer
+from clrefract.tracer import Tracer, TraceSettings
 
 EXACT = 1e-6
 
@@ -25,11 +25,9 @@ def fd_check(mode, interp="smoothstep", step=2.0, every=0, lanes=4, n_rays=100):
     eng = GradientEngine(
         VoxelGrid(vals, BOX, interp),
         BOX,
-        step=step,
-        precision="float64",
-        lanes=lanes,
-        adjoint=mode,
-        checkpoint_every=every,
+        TraceSettings(
+            step=step, precision="float64", lanes=lanes, adjoint=mode, checkpoint_every=every
+        ),
     )
     res = eng.loss_and_grad(o, d, target, env)
     p0 = vals.ravel().copy()
@@ -69,10 +67,7 @@ def test_trilinear_gradient_is_exact_between_face_crossings():
     eng = GradientEngine(
         VoxelGrid(vals, BOX, "trilinear"),
         BOX,
-        step=0.5,
-        precision="float64",
-        lanes=4,
-        adjoint="discrete",
+        TraceSettings(step=0.5, precision="float64", lanes=4, adjoint="discrete"),
     )
     g = eng.loss_and_grad(o, d, target, env).grad
     p0 = vals.ravel().copy()
@@ -108,11 +103,13 @@ def test_checkpoint_memory(monkeypatch):
         eng = GradientEngine(
             VoxelGrid(vals, BOX),
             BOX,
-            step=1.0,
-            precision="float64",
-            lanes=4,
-            adjoint=mode,
-            checkpoint_every=0 if mode == "continuous" else 10,
+            TraceSettings(
+                step=1.0,
+                precision="float64",
+                lanes=4,
+                adjoint=mode,
+                checkpoint_every=0 if mode == "continuous" else 10,
+            ),
         )
         monkeypatch.setattr(cl, "Buffer", spy)
         sizes.clear()
@@ -128,9 +125,9 @@ def test_checkpoint_memory(monkeypatch):
 def test_bad_adjoint_options_are_refused():
     vals = lens_scene(n_rays=1)[0]
     with pytest.raises(ClrefractError, match="adjoint must be one of"):
-        GradientEngine(VoxelGrid(vals, BOX), BOX, adjoint="exact")
+        GradientEngine(VoxelGrid(vals, BOX), BOX, TraceSettings(adjoint="exact"))
     with pytest.raises(ClrefractError, match="reverses rkn4 steps"):
-        Tracer(VoxelGrid(vals, BOX), BOX, integrator="rk4", adjoint="discrete")
+        Tracer(VoxelGrid(vals, BOX), BOX, TraceSettings(integrator="rk4", adjoint="discrete"))
 
 
 def test_fit_config_takes_the_adjoint_mode():
@@ -154,7 +151,9 @@ def test_hashgrid_discrete_adjoint_matches_finite_differences():
     field = lively(HashGridConfig(**SMALL))
     o, d, env, target = hg_scene(n_rays=100)
     lanes = field.lanes_on(default_runtime(), 4)
-    eng = GradientEngine(field, BOX, step=2.0, precision="float64", lanes=lanes, adjoint="discrete")
+    eng = GradientEngine(
+        field, BOX, TraceSettings(step=2.0, precision="float64", lanes=lanes, adjoint="discrete")
+    )
     res = eng.loss_and_grad(o, d, target, env)
     p0 = field.data().copy()
     rng = np.random.default_rng(1)
@@ -176,11 +175,9 @@ def test_growth_cap_truncates_the_discrete_adjoint():
         eng = GradientEngine(
             VoxelGrid(vals, BOX),
             BOX,
-            step=2.0,
-            precision="float64",
-            lanes=4,
-            adjoint="discrete",
-            growth_max=cap,
+            TraceSettings(
+                step=2.0, precision="float64", lanes=4, adjoint="discrete", growth_max=cap
+            ),
         )
         out[cap] = eng.loss_and_grad(o, d, target, env)
     full, cut = out[0.0], out[1.0]
@@ -228,7 +225,9 @@ def test_levelset_discrete_adjoint_matches_finite_differences():
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     env = smooth_env()
     target = env.lookup(d + rng.normal(0, 0.02, d.shape)).astype(np.float64)
-    eng = GradientEngine(f, LBOX, step=1.0, precision="float64", lanes=4, adjoint="discrete")
+    eng = GradientEngine(
+        f, LBOX, TraceSettings(step=1.0, precision="float64", lanes=4, adjoint="discrete")
+    )
     res = eng.loss_and_grad(o, d, target, env)
     p0 = f.data().copy()
     dirs = [np.append(rng.normal(size=f.phi.size), 0.0), np.eye(len(p0))[-1]]

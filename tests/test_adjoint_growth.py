@@ -15,7 +15,7 @@ from clrefract.fields.base import Box
 from clrefract.fields.levelset import LevelSetField
 from clrefract.fit import FitConfig
 from clrefract.gradient import GradientEngine
-from clrefract.tracer import Status, Tracer
+from clrefract.tracer import Status, Tracer, TraceSettings
 
 BOX = Box(lo=(-30.0,) * 3, hi=(30.0,) * 3, margin=3.0)
 WIDTH, STEP = 1.0, 0.25  # the fit's defaults: interface width 1 mm, step w/4
@@ -35,7 +35,8 @@ def scene():
     o = np.concatenate([c.rays()[0] for c in cams])
     d = np.concatenate([c.rays()[1] for c in cams])
     env = EnvMap.procedural(1024, 512, seed=1)
-    truth = Tracer(sphere(15.0, 1.8), BOX, step=STEP / 4, precision="float64").trace(o, d)
+    fine = TraceSettings(step=STEP / 4, precision="float64")
+    truth = Tracer(sphere(15.0, 1.8), BOX, fine).trace(o, d)
     target = env.lookup(truth.direction)
     keep = (truth.status == 0) & (np.linalg.norm(truth.direction - d, axis=1) > 1e-6)
     return o[keep], d[keep], target[keep], env
@@ -45,10 +46,7 @@ def engine(growth_max, precision="float32"):
     return GradientEngine(
         sphere(15.3, 1.7),
         BOX,
-        step=STEP,
-        precision=precision,
-        checkpoint_every=8,
-        growth_max=growth_max,
+        TraceSettings(step=STEP, precision=precision, checkpoint_every=8, growth_max=growth_max),
     )
 
 
@@ -74,7 +72,8 @@ def test_the_cap_stops_exactly_the_rays_that_grow_past_it(scene):
 def test_index_gradient_and_descent_at_the_fit_settings(scene, cap):
     """The index gradient against central differences of the same discrete loss, and the loss
     along -g. The default cap (30) also stops some rays inside this strong lens (index 1.7,
-    radius 15 mm): sign and descent hold; at 100 the magnitude does too."""
+    radius 15 mm): sign and descent hold, the magnitude falls to a quarter; at 100 it is
+    that of the uncapped gradient."""
     o, d, t, env = scene
     g_cap = FitConfig().adjoint_growth_max if cap == "default" else cap
     assert g_cap > 0
@@ -93,10 +92,14 @@ def test_index_gradient_and_descent_at_the_fit_settings(scene, cap):
     assert np.sign(r.grad[-1]) == np.sign(fd)
     u = r.grad / np.abs(r.grad).max()  # max-norm steps: mm of phi, or index
     assert loss(p0 - 3e-3 * u) < r.loss and loss(p0 - 1e-2 * u) < r.loss
+    # measured on 1200 rays, fd = -0.115 (-0.124 and -0.120 at h = 4e-3 and 1e-3): at the
+    # default cap, which stops 166 rays, grad / fd = 0.252 (0.233 to 0.252 over those h)
     if cap == "default":
+        assert 0.15 < r.grad[-1] / fd < 0.4, (r.grad[-1], fd)
         return
-    # the continuous adjoint at step w/4 is within a factor 2 of the discrete loss's slope
-    assert 0.5 < r.grad[-1] / fd < 2.0, (r.grad[-1], fd)
+    # the continuous adjoint at step w/4 against the discrete loss's slope: 1.87 (1.73 to
+    # 1.87 over those h)
+    assert 1.4 < r.grad[-1] / fd < 2.3, (r.grad[-1], fd)
     # the rays a cap of 100 stops had left the glass: without it, the gradient is the same
     r0 = engine(0.0).loss_and_grad(o, d, t, env)
     assert (r0.growth > g_cap).sum() > 0
@@ -111,7 +114,9 @@ def test_trapped_rays_reverse_no_step_and_change_nothing(scene, monkeypatch, ski
 
     o, d, t, env = scene
     eng = GradientEngine(
-        sphere(15.3, 2.6), BOX, step=STEP, precision="float64", skip_empty=skip, max_steps=900
+        sphere(15.3, 2.6),
+        BOX,
+        TraceSettings(step=STEP, precision="float64", skip_empty=skip, max_steps=900),
     )
     fast = eng.loss_and_grad(o, d, t, env)
     trapped = (fast.status == Status.TRAPPED).sum()

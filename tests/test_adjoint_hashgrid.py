@@ -14,6 +14,7 @@ from clrefract.fit import Fit, load_config
 from clrefract.gradcheck import directional_errors, smooth_env
 from clrefract.gradient import GradientEngine
 from clrefract.runtime import Runtime
+from clrefract.tracer import TraceSettings
 
 BOX = Box(margin=4.0)
 # N = 3, 4, 7, 12 with T = 2^10: levels 0-2 dense, level 3 hashed
@@ -227,7 +228,9 @@ def fd_errors(step, n_dirs=2, seed=1):
     field = lively(HashGridConfig(**SMALL))
     o, d, env, target = hg_scene()
     lanes = field.lanes_on(runtime(), 4)
-    eng = GradientEngine(field, BOX, step=step, precision="float64", lanes=lanes, runtime=runtime())
+    eng = GradientEngine(
+        field, BOX, TraceSettings(step=step, precision="float64", lanes=lanes), runtime=runtime()
+    )
     res = eng.loss_and_grad(o, d, target, env)
     p0 = field.data().copy()
 
@@ -265,7 +268,7 @@ def test_gradient_does_not_depend_on_the_number_of_queues():
     grads = []
     for q in (1, 3):
         eng = GradientEngine(
-            field, BOX, step=1.0, precision="float64", runtime=runtime(q), queues=q
+            field, BOX, TraceSettings(step=1.0, precision="float64", queues=q), runtime=runtime(q)
         )
         grads.append(eng.loss_and_grad(o, d, target, env).grad)
     for sl in (field.table_slice, field.mlp_slice):

@@ -54,6 +54,12 @@ def test_straight_gradient_matches_finite_differences():
         assert float((g * u).sum()) == pytest.approx(fd, rel=1e-6, abs=1e-9), ch
 
 
+def _srgb(x):
+    """IEC 61966-2-1 encoding of linear values clipped to [0, 1], in float64."""
+    x = np.clip(np.asarray(x, np.float64), 0, 1)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+
+
 def _train_loss(model, ds):
     o, d, rgb = ds.rays_and_pixels("train")
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
@@ -91,7 +97,15 @@ def test_straight_baseline_fits_a_tiny_scene(tiny, tmp_path, style, settings):
     assert after < 0.8 * before, (before, after)
     res = evaluate_run(run, views=1, figures=False, samples=5000)
     assert res["method"] == "straight" and res["eta_rmse"] == "n/a"
-    assert np.isfinite(res["psnr"])
+    # the eval's PSNR against the float64 formula on the test view the model renders (off
+    # by 5e-7 dB: float32 sRGB), and above the start's own score there (measured 25.72
+    # against 24.30 dB (synapse), 25.73 against 24.30 (grid), 24.59 against 20.35 (neural))
+    cam, env = ds.test[0], ds.envmap()
+    ref = _srgb(ds.image(cam))
+    fit_psnr = -10 * np.log10(np.mean((_srgb(fitted.render(cam, env)) - ref) ** 2))
+    start_psnr = -10 * np.log10(np.mean((_srgb(empty.render(cam, env)) - ref) ** 2))
+    assert res["psnr"] == pytest.approx(fit_psnr, abs=1e-5)
+    assert res["psnr"] > start_psnr + 0.5, (res["psnr"], start_psnr)
 
 
 def test_grid_baseline_is_a_trilinear_voxel_fit_whose_loss_falls(tiny, tmp_path):

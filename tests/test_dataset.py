@@ -14,7 +14,7 @@ from clrefract.imageio import read_exr_rgb, write_exr_rgb
 from clrefract.mesh import read_mesh
 from clrefract.snell import SnellRenderer
 from clrefract.synth import MakeOptions, make_dataset, scene_object
-from clrefract.tracer import Tracer
+from clrefract.tracer import Tracer, TraceSettings
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +150,10 @@ def _eikonal_exit_error(width, step):
     d = np.tile([0.0, 0.0, 1.0], (300, 1))
     exact = SnellRenderer(Sphere(radius=20.0, eta=1.5)).trace(o, d).direction
     eik = (
-        Tracer(Sphere(radius=20.0, eta=1.5, width=width), step=step, precision="float64")
+        Tracer(
+            Sphere(radius=20.0, eta=1.5, width=width),
+            settings=TraceSettings(step=step, precision="float64"),
+        )
         .trace(o, d)
         .direction
     )

@@ -6,8 +6,6 @@ the exact sphere, symmetry) or the float64 tracer. Rays are few: each case runs 
 or two on two CPU cores.
 """
 
-import time
-
 import numpy as np
 import pytest
 
@@ -15,7 +13,7 @@ from clrefract.fields.analytic import Blobs, Drop, Luneburg, Sphere
 from clrefract.fields.base import Box
 from clrefract.fields.voxel import VoxelGrid
 from clrefract.snell import snell_numpy
-from clrefract.tracer import Status, Tracer
+from clrefract.tracer import Status, Tracer, TraceSettings
 
 R = 20.0
 
@@ -53,8 +51,8 @@ def test_gas_plume_deflection_survives_float32():
     direction; the float32 tracer must still get it to 1%."""
     f = Blobs(centers=[[0.0, 0.0, 0.0]], amplitudes=[1e-4], sigmas=[10.0])
     o, d = _parallel(64, 30.0)
-    ref = Tracer(f, step=0.5, precision="float64").trace(o, d)
-    tr = Tracer(f, step=1.0)
+    ref = Tracer(f, settings=TraceSettings(step=0.5, precision="float64")).trace(o, d)
+    tr = Tracer(f, settings=TraceSettings(step=1.0))
     res = tr.trace(o, d)
     _sane(res, tr)
     deflection = np.linalg.norm(ref.direction - d, axis=1).max()
@@ -67,11 +65,13 @@ def test_diamond_sphere_matches_snell():
     the sharp sphere, and |v| = 1 again after leaving it."""
     f = Sphere(radius=R, eta=2.42, width=0.5)
     o, d = _parallel(24, 0.9 * R)
-    tr = Tracer(f, step=f.width / 8)
+    tr = Tracer(f, settings=TraceSettings(step=f.width / 8))
     res = tr.trace(o, d)
     _sane(res, tr)
     err = _deg(res.direction, snell_numpy(f, o, d).direction)
-    assert np.median(err) < 0.3 and err.max() < 2.0, (np.median(err), err.max())
+    # measured (float32 and float64 alike: the 0.5 mm band, not rounding, sets it) median
+    # 0.047 and max 0.28 degrees, the rays turned by 20 to 71 degrees
+    assert np.median(err) < 0.15 and err.max() < 0.85, (np.median(err), err.max())
     assert np.abs(res.speed - 1).max() < 2e-2
 
 
@@ -83,7 +83,7 @@ def test_luneburg_at_extreme_steps(step, bound):
     """1e-3 mm: 1.4e5 steps per ray, float32 increments below the positions' last bit
     (compensated sums keep them); 5 mm: a quarter of the lens radius per step."""
     o, d = _parallel(8 if step < 0.01 else 64, 0.9 * R)
-    tr = Tracer(Luneburg(radius=R), step=step)
+    tr = Tracer(Luneburg(radius=R), settings=TraceSettings(step=step))
     res = tr.trace(o, d)
     _sane(res, tr)
     assert np.linalg.norm(res.direction - _luneburg_exit(o), axis=1).max() < bound
@@ -96,7 +96,7 @@ def test_thin_analytic_interface_matches_snell():
     """A 0.1 mm interface (a tenth of a 1 mm voxel) with steps of w / 8."""
     f = Sphere(radius=R, eta=1.5, width=0.1)
     o, d = _parallel(8, 0.9 * R)
-    tr = Tracer(f, step=f.width / 8)
+    tr = Tracer(f, settings=TraceSettings(step=f.width / 8))
     res = tr.trace(o, d)
     _sane(res, tr)
     err = _deg(res.direction, snell_numpy(f, o, d).direction)
@@ -105,19 +105,23 @@ def test_thin_analytic_interface_matches_snell():
 
 def test_voxel_grid_of_a_step_function():
     """A sphere whose interface is a tenth of a voxel, sampled on a trilinear grid: a jagged
-    step function. No NaN, every ray leaves, float32 agrees with float64 on most rays
-    (grazing ones are chaotic on a jagged surface)."""
+    step function. No NaN, every ray leaves, float32 agrees with float64 on every ray but
+    a few grazing ones (those are chaotic on a jagged surface)."""
     box = Box()
     vox = VoxelGrid.from_field(
         Sphere(radius=R, eta=1.5, width=0.1 * 100 / 64), box, res=65, interp="trilinear"
     )
     o, d = _parallel(48, 1.1 * R)
-    tr = Tracer(vox, box=box, step=vox.suggested_step)
+    tr = Tracer(vox, box, TraceSettings(step=vox.suggested_step))
     res = tr.trace(o, d)
     _sane(res, tr)
-    ref = Tracer(vox, box=box, step=vox.suggested_step, precision="float64").trace(o, d)
+    ref = Tracer(vox, box, TraceSettings(step=vox.suggested_step, precision="float64")).trace(o, d)
     err = _deg(res.direction, ref.direction)
-    assert np.median(err) < 1e-3 and np.percentile(err, 80) < 0.05, err
+    # measured: median 4.7e-5 degrees, at most 7e-4 on the 39 rays more than 0.05 R inside
+    # the edge; of the 9 grazing ones, 7 within 0.0072 and 2 off by 64 and 112 degrees
+    grazing = np.abs(np.linalg.norm(o[:, 1:], axis=1) - R) < 0.05 * R
+    assert np.median(err) < 3e-4 and err[~grazing].max() < 5e-3, err
+    assert (err[grazing] > 0.05).sum() <= 3 and grazing.sum() <= 10, err[grazing]
 
 
 # --- grazing and tangent rays -----------------------------------------------------------------
@@ -142,7 +146,7 @@ def test_rays_grazing_the_box_faces():
     )
     d = np.tile([1.0, 0.0, 0.0], (len(o), 1))
     for precision in ("float32", "float64"):
-        tr = Tracer(f, step=0.5, precision=precision)
+        tr = Tracer(f, settings=TraceSettings(step=0.5, precision=precision))
         res = tr.trace(o, d)
         _sane(res, tr, (Status.EXITED, Status.MISSED))
         assert np.allclose(res.direction, d, atol=1e-7)
@@ -158,7 +162,7 @@ def test_rays_tangent_to_objects():
     bs = (R + 0.5) * np.array([1 - 1e-6, 1.0, 1 + 1e-6])
     o = np.column_stack([np.full(3, -120.0), bs, np.zeros(3)])
     d = np.tile([1.0, 0.0, 0.0], (3, 1))
-    tr = Tracer(f, step=0.25)
+    tr = Tracer(f, settings=TraceSettings(step=0.25))
     res = tr.trace(o, d)
     _sane(res, tr)
     assert np.linalg.norm(res.direction - d, axis=1).max() < 1e-4
@@ -166,7 +170,7 @@ def test_rays_tangent_to_objects():
         bs = R * np.array([1 - depth, 1.0, 1 + 1e-6])
         o = np.column_stack([np.full(3, -120.0), bs, np.zeros(3)])
         want = np.array([_luneburg_exit(o[:1])[0], d[0], d[0]])
-        tr = Tracer(Luneburg(radius=R), step=0.25, precision=precision)
+        tr = Tracer(Luneburg(radius=R), settings=TraceSettings(step=0.25, precision=precision))
         res = tr.trace(o, np.tile([1.0, 0.0, 0.0], (3, 1)))
         _sane(res, tr)
         assert np.linalg.norm(res.direction - want, axis=1).max() < bound, precision
@@ -188,7 +192,7 @@ def test_rays_through_the_centre_stay_straight(field, axis):
     d[0, axis], d[1, axis] = 1.0, -1.0
     o = -120.0 * d
     for precision in ("float32", "float64"):
-        tr = Tracer(field, step=0.25, precision=precision)
+        tr = Tracer(field, settings=TraceSettings(step=0.25, precision=precision))
         res = tr.trace(o, d)
         _sane(res, tr)
         assert np.abs(res.direction - d).max() < 1e-6
@@ -199,19 +203,31 @@ def test_rays_through_the_centre_stay_straight(field, axis):
 
 def test_whispering_gallery_rays_stop_trapped():
     """In a high-contrast sphere (eta 3) a ray near the surface, tangential, reflects
-    totally forever: it must stop at the step cap with TRAPPED, in bounded time, with |v| still
-    about eta."""
+    totally forever: it must stop at the step cap with TRAPPED, with |v| still about eta,
+    its angular momentum r x v (conserved in a spherically symmetric index) kept, and
+    between its start (r = 19, tangential: the closest it comes) and the radius where
+    eta(r) r = |r x v| (where it turns back)."""
+    from scipy.optimize import brentq
+
     f = Sphere(radius=R, eta=3.0, width=1.0)
     o = np.array([[0.0, 19.0, 0.0], [0.0, -19.0, 0.0], [19.0, 0.0, 0.0]])
     d = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.2], [0.0, 0.0, 1.0]])
-    tr = Tracer(f, step=0.25, max_steps=3000)
-    t0 = time.perf_counter()
+    tr = Tracer(f, settings=TraceSettings(step=0.25, max_steps=3000))
     res = tr.trace(o, d)
-    assert time.perf_counter() - t0 < 20
     _sane(res, tr, (Status.TRAPPED,))
     assert np.all(res.steps == 3000)
     eta = f.eval(res.last_position)[0]
     assert np.abs(res.speed / eta - 1).max() < 3e-2
+    # measured (float32 and float64 alike): r x v off by 4.8e-5 of its 57 after 3000 steps;
+    # all three end at r = 19.5527, the turning radius 19.693
+    u = d / np.linalg.norm(d, axis=1, keepdims=True)
+    L0 = np.cross(o, f.eval(o)[0][:, None] * u)
+    L = np.cross(res.last_position, res.last_velocity)
+    size = np.linalg.norm(L0, axis=1).min()  # 19 * 3 for each
+    assert np.linalg.norm(L - L0, axis=1).max() < 5e-4 * size
+    turn = brentq(lambda r: f.eval(np.array([[r, 0.0, 0.0]]))[0][0] * r - size, 19.5, 20.5)
+    r = np.linalg.norm(res.last_position, axis=1)
+    assert np.all(r > 19.0 - 0.02) and np.all(r < turn + 0.02), (r, turn)
 
 
 @pytest.mark.parametrize(
@@ -228,9 +244,9 @@ def test_long_rays_traced_again_end_as_in_one_pass(precision, lanes, skip):
     o = np.column_stack([np.full(n, -40.0), rng.uniform(-R - 1, R + 1, (n, 2))])
     d = np.column_stack([np.ones(n), rng.normal(0, 0.05, (n, 2))])
     o[::50], d[::50] = [0.0, 19.0, 0.0], [1.0, 0.0, 0.0]
-    kw = dict(step=0.25, precision=precision, lanes=lanes, skip_empty=skip)
-    two = Tracer(f, **kw)
-    one = Tracer(f, **kw)
+    settings = TraceSettings(step=0.25, precision=precision, lanes=lanes, skip_empty=skip)
+    two = Tracer(f, settings=settings)
+    one = Tracer(f, settings=settings)
     one.long_ray_steps = one.max_steps
     a, b = two.trace(o, d), one.trace(o, d)
     assert 0 < (b.steps > two.long_ray_steps).sum() < n  # the 2nd pass took some rays
@@ -248,7 +264,7 @@ def test_far_from_the_origin_in_float32():
     c = np.array([1e4, -2e4, 3.5e4])
     box = Box(tuple(c - 50), tuple(c + 50))
     o, d = _parallel(32, 0.9 * R)
-    tr = Tracer(Luneburg(radius=R, center=tuple(c)), box=box, step=0.25)
+    tr = Tracer(Luneburg(radius=R, center=tuple(c)), box, TraceSettings(step=0.25))
     res = tr.trace(o + c, d)
     _sane(res, tr)
     assert np.linalg.norm(res.direction - _luneburg_exit(o), axis=1).max() < 1e-5

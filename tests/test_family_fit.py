@@ -63,7 +63,7 @@ def test_tightened_hull_flattens_the_roofs_and_keeps_every_mask_ray(cube, cube_h
     rays brings it onto them. On the hull of all views but a fifth (the roofs highest),
     measured: IoU with the truth 0.81 -> 0.885 (flow time 110 mm^2) and 0.886 (330); 99.7%
     and 97.4% of the rays the hull meets still meet it."""
-    from clrefract.hull_tighten import _mask_rays, _RayDepths, tighten
+    from clrefract.hull_tighten import RayDepths, mask_edge_rays, tighten
 
     truth, masks, box, _, pts = cube_hull
     hull = visual_hull(box, cube.train, masks, 40, tolerance=0.2, carve=0)
@@ -73,13 +73,13 @@ def test_tightened_hull_flattens_the_roofs_and_keeps_every_mask_ray(cube, cube_h
         a = h.distance > 0
         return (a & inside).sum() / (a | inside).sum()
 
-    mask_rays = _mask_rays(cube.train, masks, 0)
-    rays = _RayDepths(box, hull.distance.shape, *mask_rays, 0.3, hull.distance, np.inf)
+    mask_rays = mask_edge_rays(cube.train, masks, 0)
+    rays = RayDepths(box, hull.distance.shape, *mask_rays, 0.3, hull.distance, np.inf)
     held = rays.deepest(hull.distance)[0] > 0
     # the flow's rays keep only their samples within 3 cells of the hull: where a ray peaks
     # above that, the same peak, at the same sample, as from all its samples
     margin = 3 * hull.width
-    near = _RayDepths(box, hull.distance.shape, *mask_rays, 0.3, hull.distance, margin)
+    near = RayDepths(box, hull.distance.shape, *mask_rays, 0.3, hull.distance, margin)
     assert len(near.g) < 0.8 * len(rays.g)  # measured 70% on this coarse grid
     for tight in tighten(hull, box, cube.train, masks):  # one shape per flow time
         assert iou(tight) > iou(hull) + 0.04, (iou(hull), iou(tight))

@@ -16,7 +16,7 @@ from clrefract.fields.hashgrid import (
     hash_index,
 )
 from clrefract.runtime import default_runtime
-from clrefract.tracer import Tracer
+from clrefract.tracer import Tracer, TraceSettings
 
 BOX = Box((-50.0, -40.0, -45.0), (50.0, 60.0, 40.0), 4.0)  # unequal axes: a swap shows
 # levels N = 4, 8, 16, 32 with T = 2^12: levels 0 and 1 dense, 2 and 3 hashed
@@ -59,7 +59,7 @@ def tracer(name, precision, lanes):
     lanes = FIELDS[name].lanes_on(default_runtime(), lanes)
     key = (name, precision, lanes)
     if key not in _TRACERS:
-        _TRACERS[key] = Tracer(FIELDS[name], BOX, precision=precision, lanes=lanes)
+        _TRACERS[key] = Tracer(FIELDS[name], BOX, TraceSettings(precision=precision, lanes=lanes))
     return _TRACERS[key]
 
 
@@ -322,7 +322,9 @@ def test_kernel_gradient_matches_its_finite_differences(lanes):
 
 def test_kernel_sees_parameter_updates():
     field = randomised(HashGridConfig(**SMALL), seed=12)
-    tr = Tracer(field, BOX, precision="float64", lanes=field.lanes_on(default_runtime(), 16))
+    tr = Tracer(
+        field, BOX, TraceSettings(precision="float64", lanes=field.lanes_on(default_runtime(), 16))
+    )
     pts = inner_points(50)
     before = tr.eval_field(pts)[0]
     p = field.data().copy()
@@ -572,8 +574,8 @@ def test_a_gpu_runs_the_hash_grid_at_one_lane(monkeypatch):
     rt = Runtime()
     monkeypatch.setattr(rt, "info", replace(rt.info, kind="gpu"))
     field = FIELDS["smoothstep"]
-    assert Tracer(field, BOX, precision="float32", runtime=rt).lanes == 1
+    assert Tracer(field, BOX, TraceSettings(precision="float32"), runtime=rt).lanes == 1
     with pytest.raises(ClrefractError, match="hashgrid fields run at most 1 lane"):
-        Tracer(field, BOX, precision="float32", lanes=8, runtime=rt)
+        Tracer(field, BOX, TraceSettings(precision="float32", lanes=8), runtime=rt)
     cpu = default_runtime().info.kind == "cpu"
     assert field.lanes_on(default_runtime(), 8) == (8 if cpu else 1)

@@ -10,7 +10,7 @@ from clrefract.fields import load_field_file
 from clrefract.fields.analytic import Sphere
 from clrefract.fields.base import Box
 from clrefract.fields.voxel import VoxelGrid
-from clrefract.tracer import Tracer
+from clrefract.tracer import Tracer, TraceSettings
 
 BOX = Box()  # [-50, 50]^3, margin 4: window ramps over 4..8 mm from each wall
 SHAPE = (9, 10, 11)  # distinct per axis, so a swapped axis or index order shows
@@ -29,7 +29,7 @@ _TRACERS: dict = {}
 def tracer(field, precision, lanes):
     key = (id(field), precision, lanes)
     if key not in _TRACERS:
-        _TRACERS[key] = Tracer(field, BOX, precision=precision, lanes=lanes)
+        _TRACERS[key] = Tracer(field, BOX, TraceSettings(precision=precision, lanes=lanes))
     return _TRACERS[key]
 
 
@@ -397,6 +397,8 @@ def test_bspline_kernel_on_grids_with_fewer_than_4_nodes_per_axis(shape):
     pts = sample_points(0.0, n=500)
     eta_ref, grad_ref = field.eval(pts)
     for lanes in (1, 8):
-        eta, grad = Tracer(field, BOX, precision="float64", lanes=lanes).eval_field(pts)
+        eta, grad = Tracer(field, BOX, TraceSettings(precision="float64", lanes=lanes)).eval_field(
+            pts
+        )
         assert np.abs(eta - eta_ref).max() < 1e-14
         assert np.abs(grad - grad_ref).max() < 1e-15

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from clrefract.fields.analytic import Blobs, Drop, Fibre, Luneburg, Maxwell, Prism, Sphere
-from clrefract.tracer import Tracer
+from clrefract.tracer import Tracer, TraceSettings
 
 FIELDS = [
     Luneburg(radius=20.0),
@@ -27,7 +27,9 @@ def _points(n=4000, seed=0):
 )
 def test_kernel_matches_numpy_reference(field, precision, lanes, tol):
     pts = _points()
-    eta, grad = Tracer(field, precision=precision, lanes=lanes).eval_field(pts)
+    eta, grad = Tracer(field, settings=TraceSettings(precision=precision, lanes=lanes)).eval_field(
+        pts
+    )
     eta_ref, grad_ref = field.eval(pts)
     scale = max(1.0, np.abs(grad_ref).max())
     assert np.abs(eta - eta_ref).max() < tol * 10

@@ -82,7 +82,7 @@ def test_the_flows_ray_checks_interpolate_as_map_coordinates():
     beyond the grid and on its last nodes included."""
     from scipy import ndimage
 
-    from clrefract.hull_tighten import _trilinear
+    from clrefract.hull_tighten import trilinear_matrix
 
     rng = np.random.default_rng(0)
     for shape in [(7, 5, 6), (2, 9, 3)]:
@@ -90,7 +90,7 @@ def test_the_flows_ray_checks_interpolate_as_map_coordinates():
         g = rng.uniform(-1.0, np.asarray(shape) + 0.5, (4000, 3))
         g[:10] = np.asarray(shape) - 1  # the last node exactly
         want = ndimage.map_coordinates(grid, g.T, order=1, mode="nearest")
-        np.testing.assert_allclose(_trilinear(g, shape) @ grid.ravel(), want, atol=1e-12)
+        np.testing.assert_allclose(trilinear_matrix(g, shape) @ grid.ravel(), want, atol=1e-12)
 
 
 def test_cameras_close_to_a_large_box_carve_beyond_their_frames(tmp_path):
@@ -145,7 +145,7 @@ def test_a_mask_that_runs_off_its_frame_carves_nothing_beyond_that_edge():
     """Beyond the frame a view knows only its edge: where the mask touches the edge the object
     may go on (not carved), where the edge is air the distance outside keeps growing."""
     from clrefract.cameras import Camera
-    from clrefract.hull import _cone_distances
+    from clrefract.hull import cone_distances
 
     c2w = np.eye(4)
     c2w[2, 3] = 100.0  # at z = 100, looking down -z (OpenGL axes)
@@ -154,7 +154,7 @@ def test_a_mask_that_runs_off_its_frame_carves_nothing_beyond_that_edge():
     mask[5:15, :6] = True  # runs off the left edge
     # the frame spans +-50 mm at z = 0
     pts = np.array([[-60.0, 0.0, 0.0], [60.0, 0.0, 0.0], [80.0, 0.0, 0.0], [-60.0, 40.0, 0.0]])
-    sd = _cone_distances([cam], [mask_distance(mask)], pts)[0]
+    sd = cone_distances([cam], [mask_distance(mask)], pts)[0]
     assert sd[0] > 0  # beyond the left edge, in line with the mask: unknown, kept
     assert sd[1] < 0 and sd[2] == pytest.approx(sd[1] - 20)  # past the air edge: 4 px further
     assert sd[3] < 0  # beyond the left edge but above the mask's rows: air
@@ -195,8 +195,11 @@ def test_fit_starts_from_the_hull_filled_with_the_right_index(sphere_dataset, tm
     fit.start()
     info = fit.init_info
     # measured 1.297 (1.328 on the hull of all views but a fifth, at a higher loss): cells of
-    # 2.5 mm blur the interface, and a blurred glass surface scores best a little weaker
-    assert 1.25 <= info["eta"] <= 1.6 and abs(info["offset_mm"]) < 4, info
+    # 2.5 mm blur the interface, and a blurred glass surface scores best a little weaker. The
+    # fine search tries indices 1/64 apart: three of them either side are allowed. The hull,
+    # too big where no view sees in, is shrunk by one of its 2.56 mm cells (-2.56 mm
+    # measured; the candidates are -3.85, -2.56, -1.28 and +1.28 mm, or 0)
+    assert 1.25 <= info["eta"] <= 1.35 and -4 < info["offset_mm"] < -1, info
     assert info["loss"] < 0.9 * info["loss_empty"], info
     # only the nodes near the hull may change
     assert 0.01 < fit._free.mean() < 0.2

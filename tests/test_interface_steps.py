@@ -6,7 +6,7 @@ import pytest
 from clrefract.convergence import loglog_slope, luneburg_exit_errors
 from clrefract.fields.analytic import Sphere
 from clrefract.snell import snell_numpy
-from clrefract.tracer import Tracer
+from clrefract.tracer import Tracer, TraceSettings
 
 
 @pytest.mark.parametrize("integrator", ["rkn4", "rk4"])
@@ -36,7 +36,9 @@ def test_interface_steps_bring_a_sphere_closer_to_snell():
     want = snell_numpy(f, o, d).direction
     err = {}
     for on in (True, False):
-        res = Tracer(f, step=0.25, precision="float64", interface_steps=on).trace(o, d)
+        res = Tracer(
+            f, settings=TraceSettings(step=0.25, precision="float64", interface_steps=on)
+        ).trace(o, d)
         assert np.all(np.isfinite(res.direction))
         err[on] = np.linalg.norm(res.direction - want, axis=1).max()
     assert err[True] < err[False], err
@@ -60,12 +62,12 @@ def test_level_set_band_edges_are_interface_steps_too():
     o = np.column_stack([np.full(len(yz), -120.0), yz])
     d = np.tile([1.0, 0.0, 0.0], (len(yz), 1))
     snell = snell_numpy(Sphere(radius=20.0, eta=1.5), o, d).direction
-    kw = dict(box=box, precision="float64")
-    fine = Tracer(ls, step=1 / 64, **kw).trace(o, d).direction
+    fine = Tracer(ls, box, TraceSettings(step=1 / 64, precision="float64")).trace(o, d).direction
     err, snell_err = {}, {}
     for on in (True, False):
         for step in (0.25, 0.0625):
-            res = Tracer(ls, step=step, interface_steps=on, **kw).trace(o, d)
+            settings = TraceSettings(step=step, precision="float64", interface_steps=on)
+            res = Tracer(ls, box, settings).trace(o, d)
             assert np.all(res.status == 0)
             err[on, step] = np.linalg.norm(res.direction - fine, axis=1).max()
             snell_err[on, step] = np.linalg.norm(res.direction - snell, axis=1).max()
@@ -81,7 +83,7 @@ def test_fits_trace_without_interface_steps():
 
     ls = LevelSetField(np.linspace(-5, 5, 8)[:, None, None] * np.ones((8, 8, 8)))
     assert Tracer(ls, box=ls.box).interface_steps
-    assert not Tracer(ls, box=ls.box, adjoint=True).interface_steps
+    assert not Tracer(ls, ls.box, TraceSettings(adjoint="continuous")).interface_steps
 
 
 def test_hash_grid_ramp_ends_are_interface_steps_at_the_fits_step():
@@ -104,11 +106,11 @@ def test_hash_grid_ramp_ends_are_interface_steps_at_the_fits_step():
     yz = yz[(yz**2).sum(1) < 13**2][:24]
     o = np.column_stack([np.full(len(yz), -120.0), yz])
     d = np.tile([1.0, 0.0, 0.0], (len(yz), 1))
-    kw = dict(box=box, precision="float64")
-    fine = Tracer(f, step=1 / 64, **kw).trace(o, d).direction
+    fine = Tracer(f, box, TraceSettings(step=1 / 64, precision="float64")).trace(o, d).direction
     err = {}
     for on in (True, False):
-        res = Tracer(f, step=0.25, interface_steps=on, **kw).trace(o, d)
+        settings = TraceSettings(step=0.25, precision="float64", interface_steps=on)
+        res = Tracer(f, box, settings).trace(o, d)
         assert np.all(res.status == 0)
         err[on] = np.linalg.norm(res.direction - fine, axis=1).max()
     assert err[True] < 0.7 * err[False], err

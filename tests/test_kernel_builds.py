@@ -18,7 +18,7 @@ from clrefract.fields.voxel import VoxelGrid
 from clrefract.gradient import GradientEngine
 from clrefract.runtime import default_runtime
 from clrefract.snell import SnellRenderer
-from clrefract.tracer import Status, Tracer
+from clrefract.tracer import Status, Tracer, TraceSettings
 
 BOX = Box()
 ANALYTIC = ["luneburg", "maxwell", "fibre", "blobs", "sphere", "prism", "drop"]
@@ -72,7 +72,7 @@ def _rays(n=32, seed=0):
 
 
 def _trace(field, precision, lanes):
-    tr = Tracer(field, BOX, step=0.5, precision=precision, lanes=lanes)
+    tr = Tracer(field, BOX, TraceSettings(step=0.5, precision=precision, lanes=lanes))
     o, d = _rays()
     res = tr.trace(o, d)
     return res
@@ -87,9 +87,11 @@ def test_analytic_trace_builds_and_agrees_with_one_lane(kind, precision, lanes):
     assert np.all(res.status != Status.NONFINITE) and np.all(np.isfinite(res.direction))
     assert np.array_equal(res.status, ref.status)
     out = res.status == Status.EXITED
-    assert out.sum() >= 8 or kind == "fibre"  # the fibre guides most rays to the step cap
+    if kind == "fibre":  # the fibre guides these rays to the step cap: compare them there
+        out = res.status == Status.TRAPPED
+    assert out.sum() >= 8, np.bincount(res.status)  # never a check over no ray
     tol = 1e-4 if precision == "float32" else 1e-10
-    assert np.abs(res.direction - ref.direction)[out].max(initial=0) < tol
+    assert np.abs(res.direction - ref.direction)[out].max() < tol
 
 
 @pytest.mark.parametrize("precision,lanes", _selected_widths())
@@ -100,7 +102,9 @@ def test_fitted_forward_and_backward_build_and_agree_with_one_lane(kind, precisi
     target = np.full((len(o), 3), 0.3)
     grads = []
     for p, n in ((precision, lanes), (precision, 1)):
-        eng = GradientEngine(_fitted_field(kind), BOX, step=0.5, precision=p, lanes=n)
+        eng = GradientEngine(
+            _fitted_field(kind), BOX, TraceSettings(step=0.5, precision=p, lanes=n)
+        )
         r = eng.loss_and_grad(o, d, target, env)
         assert np.isfinite(r.loss) and np.all(np.isfinite(r.grad))
         grads.append(r.grad)
@@ -113,15 +117,35 @@ def test_fitted_forward_and_backward_build_and_agree_with_one_lane(kind, precisi
     res, ref = _trace(field, precision, lanes), _trace(field, precision, 1)
     assert np.array_equal(res.status, ref.status)
     out = res.status == Status.EXITED
-    assert out.sum() >= 8
+    assert out.sum() >= 8  # never a check over no ray
     tol = 1e-4 if precision == "float32" else 1e-10
-    assert np.abs(res.direction - ref.direction)[out].max(initial=0) < tol
+    assert np.abs(res.direction - ref.direction)[out].max() < tol
 
 
-def test_snell_kernel_builds():
+def _sphere_exit(o, d, radius, eta):
+    """Closed form: a ray at impact parameter b < R through a sharp ball is turned towards
+    its centre, in the plane of the ray and the centre, by 2 (asin(b/R) - asin(b/(eta R)))."""
+    p = o - (o * d).sum(1, keepdims=True) * d  # the ray's closest approach to the centre
+    b = np.linalg.norm(p, axis=1)
+    s = np.minimum(b / radius, 1.0)
+    turn = np.where(b < radius, 2 * (np.arcsin(s) - np.arcsin(s / eta)), 0.0)
+    return np.cos(turn)[:, None] * d - np.sin(turn)[:, None] * p / b[:, None], b < radius
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_snell_kernel_builds_and_bends_as_the_closed_form(precision):
+    """Exit directions through the ball against the closed form (measured off by 2.5e-15
+    in float64 and 6.4e-7 in float32; the rays turn by up to 60 degrees)."""
+    if precision == "float64" and not default_runtime().info.fp64:
+        pytest.skip("no float64 on this device")
     o, d = _rays()
-    res = SnellRenderer(field_from_spec("sphere"), BOX).trace(o, d)
+    f = field_from_spec("sphere")
+    res = SnellRenderer(f, BOX, precision=precision).trace(o, d)
     assert np.all(res.status == Status.EXITED) and np.all(np.isfinite(res.direction))
+    want, hit = _sphere_exit(o, d, f.radius, f.eta)
+    assert hit.sum() >= 24 and np.abs(want - d).max() > 0.5  # most rays bent, some strongly
+    tol = 5e-6 if precision == "float32" else 2e-14
+    assert np.linalg.norm(res.direction - want, axis=1).max() < tol
 
 
 def test_probe_passes_at_the_selected_widths_against_numpy():
@@ -193,7 +217,7 @@ def test_lane_widths_the_driver_cannot_build_are_refused_in_one_line(monkeypatch
     monkeypatch.setattr(rt, "lane_widths", lambda precision: [1, 2, 4, 8])
     assert rt.default_lanes("float32") == (8 if rt.info.kind == "cpu" else 1)
     with pytest.raises(ClrefractError, match=r"cannot build float32 kernels at 16 lanes") as e:
-        Tracer(field_from_spec("sphere"), BOX, lanes=16, runtime=rt)
+        Tracer(field_from_spec("sphere"), BOX, TraceSettings(lanes=16), runtime=rt)
     assert "--lanes 8" in str(e.value) and "\n" not in str(e.value)
     monkeypatch.setattr(rt, "lane_widths", lambda precision: [])
     with pytest.raises(ClrefractError, match="cannot build clrefract's float32 kernels"):

@@ -13,7 +13,7 @@ from clrefract.fields.levelset import LevelSetField
 from clrefract.fit_start import START_BATCH
 from clrefract.gradcheck import directional_errors, smooth_env
 from clrefract.gradient import GradientEngine
-from clrefract.tracer import Tracer
+from clrefract.tracer import Tracer, TraceSettings
 
 BOX = Box(lo=(-30.0,) * 3, hi=(30.0,) * 3, margin=3.0)
 
@@ -35,7 +35,7 @@ def ellipsoid(res=16, width=4.0, noise=0.3, seed=0):
 def test_kernel_matches_the_numpy_reference(precision, lanes, tol):
     f = ellipsoid()
     pts = np.random.default_rng(1).uniform(-32, 32, (3000, 3))
-    eta, grad = Tracer(f, BOX, precision=precision, lanes=lanes).eval_field(pts)
+    eta, grad = Tracer(f, BOX, TraceSettings(precision=precision, lanes=lanes)).eval_field(pts)
     ref, gref = f.eval(pts)
     assert np.abs(eta - ref).max() < tol
     assert np.abs(grad - gref).max() < tol * 10
@@ -68,7 +68,9 @@ def fd_errors(step, checkpoint_every=8, seed=3):
     env = smooth_env()
     target = env.lookup(d + rng.normal(0, 0.02, d.shape)).astype(np.float64)
     eng = GradientEngine(
-        f, BOX, step=step, precision="float64", lanes=4, checkpoint_every=checkpoint_every
+        f,
+        BOX,
+        TraceSettings(step=step, precision="float64", lanes=4, checkpoint_every=checkpoint_every),
     )
     res = eng.loss_and_grad(o, d, target, env)
     p0 = f.data().copy()
@@ -97,7 +99,7 @@ def test_adjoint_is_the_same_for_every_lane_width():
     env = smooth_env()
     target = env.lookup(d + rng.normal(0, 0.02, d.shape)).astype(np.float64)
     grads = {
-        (p, lanes): GradientEngine(f, BOX, step=0.5, precision=p, lanes=lanes)
+        (p, lanes): GradientEngine(f, BOX, TraceSettings(step=0.5, precision=p, lanes=lanes))
         .loss_and_grad(o, d, target, env)
         .grad
         for p, lanes in [("float64", 1), ("float64", 8), ("float32", 16)]

@@ -9,7 +9,7 @@ from clrefract.errors import ClrefractError
 from clrefract.fields.analytic import Sphere
 from clrefract.fields.base import Box
 from clrefract.runtime import Runtime, default_runtime, list_devices
-from clrefract.tracer import Tracer
+from clrefract.tracer import Tracer, TraceSettings
 
 
 def test_devices_are_listed_with_their_capabilities():
@@ -37,13 +37,13 @@ def test_float64_on_a_device_without_it_is_refused():
     rt = Runtime()
     rt.info = dataclasses.replace(rt.info, fp64=False)
     with pytest.raises(ClrefractError, match="float64 was requested.*cl_khr_fp64"):
-        Tracer(Sphere(), precision="float64", runtime=rt)
+        Tracer(Sphere(), settings=TraceSettings(precision="float64"), runtime=rt)
 
 
 @pytest.mark.parametrize("step", [0.0, -1.0, float("nan"), float("inf")])
 def test_non_positive_step_is_refused(step):
     with pytest.raises(ClrefractError, match="step must be a positive"):
-        Tracer(Sphere(), step=step)
+        Tracer(Sphere(), settings=TraceSettings(step=step))
 
 
 def test_build_failure_reports_the_compiler_log():
@@ -58,10 +58,11 @@ def test_build_failure_reports_the_compiler_log():
 
 def test_programs_are_built_once_and_kernels_reused():
     rt = default_runtime()
-    a = Tracer(Sphere(), step=0.5, runtime=rt)
-    b = Tracer(Sphere(radius=10.0), step=0.25, runtime=rt)  # same build, other parameters
+    a = Tracer(Sphere(), settings=TraceSettings(step=0.5), runtime=rt)
+    # same build, other parameters
+    b = Tracer(Sphere(radius=10.0), settings=TraceSettings(step=0.25), runtime=rt)
     assert a._k_trace is b._k_trace
-    c = Tracer(Sphere(), step=0.5, integrator="euler", runtime=rt)
+    c = Tracer(Sphere(), settings=TraceSettings(step=0.5, integrator="euler"), runtime=rt)
     assert c._k_trace is not a._k_trace
 
 

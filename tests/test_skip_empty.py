@@ -2,6 +2,8 @@
 same exit rays to rounding, far fewer integration steps when the object is small; in fits
 the same loss and gradient, with the occupancy rebuilt as the field trains."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.ndimage import binary_dilation
@@ -24,7 +26,7 @@ from clrefract.occupancy import (
     occupied_cells,
 )
 from clrefract.synth import MakeOptions, make_dataset
-from clrefract.tracer import Tracer
+from clrefract.tracer import Tracer, TraceSettings
 
 
 def _rays(n=256, seed=0):
@@ -40,8 +42,10 @@ def _rays(n=256, seed=0):
 )
 def test_same_rays_with_fewer_steps(field, step):
     o, d = _rays()
-    a = Tracer(field, step=step, precision="float64").trace(o, d)
-    b = Tracer(field, step=step, precision="float64", skip_empty=True).trace(o, d)
+    a = Tracer(field, settings=TraceSettings(step=step, precision="float64")).trace(o, d)
+    b = Tracer(
+        field, settings=TraceSettings(step=step, precision="float64", skip_empty=True)
+    ).trace(o, d)
     assert np.array_equal(a.status, b.status)
     assert np.abs(a.direction - b.direction).max() < 1e-9
     assert np.abs(a.position - b.position).max() < 1e-7
@@ -56,8 +60,8 @@ def test_a_launch_of_4096_work_items_skips_too():
     o = np.column_stack([np.full(n, -120.0), np.random.default_rng(0).uniform(-30, 30, (n, 2))])
     d = np.tile([1.0, 0.0, 0.0], (n, 1))
     f = Sphere(radius=10.0, eta=1.5, width=1.0)
-    a = Tracer(f, step=0.25, lanes=16).trace(o, d)
-    b = Tracer(f, step=0.25, lanes=16, skip_empty=True).trace(o, d)
+    a = Tracer(f, settings=TraceSettings(step=0.25, lanes=16)).trace(o, d)
+    b = Tracer(f, settings=TraceSettings(step=0.25, lanes=16, skip_empty=True)).trace(o, d)
     assert np.array_equal(a.status, b.status)
     assert np.abs(a.direction - b.direction).max() < 1e-4
     assert b.steps.mean() < a.steps.mean() / 4
@@ -69,7 +73,7 @@ def test_a_fitted_hash_grid_renders_the_same_with_skipping_in_fewer_steps():
     (eta exactly 1 in air): in float64 the same exits as without skipping, in under half
     the steps, and the device's samples give the NumPy reference's occupancy."""
     from clrefract.fields.hashgrid import HashGridField
-    from clrefract.fit import hashgrid_config
+    from clrefract.fit import forward_settings, hashgrid_config
     from clrefract.occupancy import empty_distance
     from clrefract.render import run_tracer
 
@@ -81,8 +85,9 @@ def test_a_fitted_hash_grid_renders_the_same_with_skipping_in_fewer_steps():
     pts = np.random.default_rng(1).uniform(-12, 12, (100_000, 3))
     r = np.linalg.norm(pts, axis=1)
     field.fit_surface(pts, r - 8.0, pts / r[:, None], 1.5, cfg.width, iterations=150)
-    skip = run_tracer(field, box, cfg)
-    plain = Tracer(field, field.tracing_box(box), step=cfg.step_mm, precision="float64")
+    settings = forward_settings(cfg)
+    skip = run_tracer(field, box, settings)
+    plain = Tracer(field, field.tracing_box(box), replace(settings, skip_empty=False))
     assert skip.skip_empty and not plain.skip_empty
     np.testing.assert_array_equal(skip.occupancy, empty_distance(field, skip.box))
     assert 0.5 < (skip.occupancy > 0).mean() < 0.95  # measured 0.83 of the cells skipped
@@ -124,9 +129,9 @@ def test_voxel_grid_skipping_matches_but_for_chaotic_rays():
     rounding amplified; the rest match to 1e-6."""
     vox = VoxelGrid.from_field(Sphere(radius=10.0, eta=1.5, width=2.0), res=33)
     o, d = _rays(128)
-    kw = dict(box=vox.box, step=0.5, precision="float64")
-    a = Tracer(vox, **kw).trace(o, d)
-    b = Tracer(vox, skip_empty=True, **kw).trace(o, d)
+    settings = TraceSettings(step=0.5, precision="float64")
+    a = Tracer(vox, vox.box, settings).trace(o, d)
+    b = Tracer(vox, vox.box, replace(settings, skip_empty=True)).trace(o, d)
     off = np.abs(a.direction - b.direction).max(1) > 1e-6
     assert off.mean() < 0.03, off.mean()
     assert b.steps.mean() < a.steps.mean() / 2
@@ -147,7 +152,7 @@ def test_occupancy_covers_a_thin_interface():
 def test_discrete_adjoint_refuses_skipping():
     vox = VoxelGrid(np.ones((8, 8, 8)))
     with pytest.raises(ClrefractError, match="discrete adjoint"):
-        Tracer(vox, box=vox.box, skip_empty=True, adjoint="discrete")
+        Tracer(vox, vox.box, TraceSettings(skip_empty=True, adjoint="discrete"))
 
 
 # --- while training: the backward pass flies back through the same empty cells ------------
@@ -173,7 +178,7 @@ def _grads(field, live, precision="float64", lanes=None):
     out = []
     for skip in (False, True):
         eng = GradientEngine(
-            field, BOX, step=0.25, precision=precision, lanes=lanes, skip_empty=skip
+            field, BOX, TraceSettings(step=0.25, precision=precision, lanes=lanes, skip_empty=skip)
         )
         if skip and live is not None:  # else the engine's own: exact for every parameter
             eng.tracer.set_occupancy(distance_of(live))

@@ -8,7 +8,7 @@ from rays import camera_rays, unit
 
 from clrefract.errors import ClrefractError
 from clrefract.fields.analytic import Drop, Luneburg, Prism, Sphere
-from clrefract.snell import SnellRenderer, _drop_F, snell_numpy
+from clrefract.snell import SnellRenderer, drop_F, snell_numpy
 from clrefract.tracer import Status
 
 S3 = math.sqrt(3.0) / 2
@@ -171,7 +171,7 @@ def test_drop_surface_points_and_axial_angular_momentum():
     hit = res.status != Status.MISSED
     assert hit.sum() > 1500
     assert np.any(res.events > 2)  # total internal reflection inside the drop happens
-    assert np.abs(_drop_F(res.surface[hit] - np.asarray(drop.center), drop.R, drop.H)).max() < 1e-8
+    assert np.abs(drop_F(res.surface[hit] - np.asarray(drop.center), drop.R, drop.H)).max() < 1e-8
     # the normal of a body of revolution lies in the meridional plane: L_z is conserved
     du = unit(d)
     lz0 = o[:, 0] * du[:, 1] - o[:, 1] * du[:, 0]

@@ -5,7 +5,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from clrefract.fields.analytic import Blobs, Fibre, Luneburg, Maxwell
-from clrefract.tracer import Status, Tracer
+from clrefract.tracer import Status, Tracer, TraceSettings
 
 R = 20.0
 
@@ -27,7 +27,8 @@ def _luneburg_error(integrator, n_steps, precision="float64"):
     p, d = _luneburg_starts(64)
     sigma = np.pi * R / 2
     tr = Tracer(
-        Luneburg(radius=R), step=sigma / n_steps, integrator=integrator, precision=precision
+        Luneburg(radius=R),
+        settings=TraceSettings(step=sigma / n_steps, integrator=integrator, precision=precision),
     )
     x, v = tr.propagate(p * (1 - 1e-12), d, n_steps)
     # leaves at R d with velocity -P / R
@@ -50,7 +51,9 @@ def test_luneburg_focuses_parallel_rays_through_the_box():
     yz = R * yz[(yz**2).sum(1) < 0.9][:500]
     origins = np.column_stack([np.full(len(yz), -120.0), yz])
     dirs = np.tile([1.0, 0.0, 0.0], (len(yz), 1))
-    res = Tracer(Luneburg(radius=R), step=0.1, precision="float64").trace(origins, dirs)
+    res = Tracer(Luneburg(radius=R), settings=TraceSettings(step=0.1, precision="float64")).trace(
+        origins, dirs
+    )
     assert np.all(res.status == Status.EXITED)
     # every exit line passes through the antipodal focus (R, 0, 0)
     w = np.array([R, 0.0, 0.0]) - res.position
@@ -66,7 +69,7 @@ def _fisheye_error(n_steps, sigma=25.0):
     p = rng.uniform(-30, 30, (64, 3))
     d = _unit(rng.normal(size=(64, 3)))
     eta, _ = f.eval(p)
-    x, _ = Tracer(f, step=sigma / n_steps, precision="float64").propagate(
+    x, _ = Tracer(f, settings=TraceSettings(step=sigma / n_steps, precision="float64")).propagate(
         p, eta[:, None] * d, n_steps
     )
     # the ray is the circle through P, tangent to d there, through the image -R^2 P / |P|^2
@@ -94,7 +97,9 @@ def _fibre_error(n_steps, sigma=120.0):
     d = _unit(np.column_stack([rng.uniform(-0.3, 0.3, (32, 2)), np.ones(32)]))
     eta, _ = f.eval(x0)
     v0 = eta[:, None] * d
-    x, v = Tracer(f, step=sigma / n_steps, precision="float64").propagate(x0, v0, n_steps)
+    x, v = Tracer(f, settings=TraceSettings(step=sigma / n_steps, precision="float64")).propagate(
+        x0, v0, n_steps
+    )
     w = n0 * a
     exp = np.empty_like(x0)
     exp[:, :2] = x0[:, :2] * np.cos(w * sigma) + v0[:, :2] / w * np.sin(w * sigma)
@@ -124,7 +129,9 @@ def test_random_blob_field_matches_dop853_in_float64():
     eta, _ = f.eval(x0)
     v0 = eta[:, None] * d
     sigma, n = 60.0, 300
-    x, v = Tracer(f, step=sigma / n, precision="float64").propagate(x0, v0, n)
+    x, v = Tracer(f, settings=TraceSettings(step=sigma / n, precision="float64")).propagate(
+        x0, v0, n
+    )
     for i in range(len(x0)):
         sol = solve_ivp(
             _blob_rhs(f),
@@ -150,7 +157,9 @@ def test_speed_equals_eta_drift_float32_vs_float64():
     drift = {}
     for prec in ("float32", "float64"):
         for h in (0.5, 0.25):
-            x, v = Tracer(f, step=h, precision=prec).propagate(x0, v0, int(100 / h))
+            x, v = Tracer(f, settings=TraceSettings(step=h, precision=prec)).propagate(
+                x0, v0, int(100 / h)
+            )
             drift[prec, h] = np.abs(np.linalg.norm(v, axis=1) - f.eval(x)[0]).max()
     assert 10 < drift["float64", 0.5] / drift["float64", 0.25] < 24
     assert drift["float64", 0.25] < 1e-9
@@ -160,13 +169,13 @@ def test_speed_equals_eta_drift_float32_vs_float64():
 
 def test_status_missed_and_trapped():
     f = Blobs.random(2, amplitude=0.05, seed=0)
-    tr = Tracer(f, step=1.0)
+    tr = Tracer(f, settings=TraceSettings(step=1.0))
     origins = np.array([[-100.0, 0, 0], [-100.0, 200.0, 0]])
     dirs = np.array([[1.0, 0, 0], [1.0, 0, 0]])
     res = tr.trace(origins, dirs)
     assert list(res.status) == [Status.EXITED, Status.MISSED]
     assert np.allclose(res.position[1], origins[1]) and np.allclose(res.direction[1], dirs[1])
-    short = Tracer(f, step=1.0, max_steps=10).trace(origins, dirs)
+    short = Tracer(f, settings=TraceSettings(step=1.0, max_steps=10)).trace(origins, dirs)
     assert short.status[0] == Status.TRAPPED and short.steps[0] == 10
 
 
@@ -176,7 +185,7 @@ def test_lane_width_does_not_change_results(lanes):
     rng = np.random.default_rng(9)
     o = np.column_stack([rng.uniform(-40, 40, (37, 2)), np.full(37, -80.0)])
     d = _unit(np.column_stack([rng.normal(0, 0.1, (37, 2)), np.ones(37)]))
-    ref = Tracer(f, step=0.5, precision="float64", lanes=1).trace(o, d)
-    res = Tracer(f, step=0.5, precision="float64", lanes=lanes).trace(o, d)
+    ref = Tracer(f, settings=TraceSettings(step=0.5, precision="float64", lanes=1)).trace(o, d)
+    res = Tracer(f, settings=TraceSettings(step=0.5, precision="float64", lanes=lanes)).trace(o, d)
     assert np.array_equal(res.steps, ref.steps)
     assert np.abs(res.direction - ref.direction).max() < 1e-12

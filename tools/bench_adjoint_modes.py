@@ -20,6 +20,7 @@ from clrefract.fields.base import Box  # noqa: E402
 from clrefract.fields.voxel import VoxelGrid  # noqa: E402
 from clrefract.gradcheck import directional_errors, lens_scene  # noqa: E402
 from clrefract.gradient import GradientEngine  # noqa: E402
+from clrefract.tracer import TraceSettings
 
 BOX = Box(margin=4.0)
 
@@ -28,7 +29,9 @@ def fd_agreement(mode: str, step: float, interp: str, n_dirs: int = 3, eps: floa
     """Relative errors of <g, u> against central differences of the forward loss."""
     vals, o, d, env, target = lens_scene(100)
     eng = GradientEngine(
-        VoxelGrid(vals, BOX, interp), BOX, step=step, precision="float64", lanes=4, adjoint=mode
+        VoxelGrid(vals, BOX, interp),
+        BOX,
+        TraceSettings(step=step, precision="float64", lanes=4, adjoint=mode),
     )
     g = eng.loss_and_grad(o, d, target, env).grad
     dirs = np.random.default_rng(1).normal(size=(n_dirs, g.size))
@@ -38,7 +41,9 @@ def fd_agreement(mode: str, step: float, interp: str, n_dirs: int = 3, eps: floa
 def timing(mode: str, every: int, n_rays: int, step: float, repeats: int):
     vals, o, d, env, target = lens_scene(n_rays, res=32)
     eng = GradientEngine(
-        VoxelGrid(vals, BOX, "bspline"), BOX, step=step, adjoint=mode, checkpoint_every=every
+        VoxelGrid(vals, BOX, "bspline"),
+        BOX,
+        TraceSettings(step=step, adjoint=mode, checkpoint_every=every),
     )
     eng.loss_and_grad(o[:64], d[:64], target[:64], env)  # build and warm up
     fwd = tot = np.inf

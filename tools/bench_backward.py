@@ -45,12 +45,13 @@ def run_clrefract(n_rays: int, step: float, repeats: int, q) -> None:
     from clrefract.fields.base import Box
     from clrefract.fields.voxel import VoxelGrid
     from clrefract.gradient import GradientEngine
+    from clrefract.tracer import TraceSettings
 
     vals, o, d = scene(n_rays)
     env = _env()
     target = env.lookup(d).astype(np.float64)
     field = VoxelGrid(vals, Box(), interp="smoothstep")
-    eng = GradientEngine(field, Box(), step=step, precision="float32")
+    eng = GradientEngine(field, Box(), TraceSettings(step=step, precision="float32"))
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     eng.loss_and_grad(o[:64], d[:64], target[:64], env)
     fwd, tot = np.inf, np.inf

@@ -58,6 +58,7 @@ def _child(device: str, family: str, lanes: int | None) -> None:
     from clrefract.gradient import GradientEngine
     from clrefract.runtime import Runtime
     from clrefract.snell import SnellRenderer
+    from clrefract.tracer import TraceSettings
 
     rt = Runtime(device)
     what, _, kind = family.partition(":")
@@ -71,11 +72,11 @@ def _child(device: str, family: str, lanes: int | None) -> None:
     elif what == "trace":
         from clrefract.tracer import Tracer
 
-        tr = Tracer(_field(kind), runtime=rt, lanes=lanes)
+        tr = Tracer(_field(kind), settings=TraceSettings(lanes=lanes), runtime=rt)
         tr.trace(o, d)
         used = tr.lanes
     else:
-        eng = GradientEngine(_field(kind), Box(), runtime=rt, lanes=lanes)
+        eng = GradientEngine(_field(kind), Box(), TraceSettings(lanes=lanes), runtime=rt)
         eng.loss_and_grad(o, d, np.full((64, 3), 0.3), EnvMap.procedural(64, 32))
         used = eng.tracer.lanes
     seconds = sum(rt.build_seconds.values())

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -28,15 +27,22 @@ def floats(text: str) -> list[float]:
     return [float(v) for v in text.split(",") if v]
 
 
+def quick_dataset(scene: str, data: str) -> Path:
+    """The family solid's quick-protocol dataset (128 x 128, 100 views), made if missing."""
+    from clrefract.synth import MakeOptions, make_dataset
+
+    root = Path(data) / f"{scene}_128"
+    if not (root / "scene.json").is_file():
+        make_dataset(scene, root, MakeOptions(views=100, res=128))
+    return root
+
+
 def main() -> None:
     from clrefract.dataset import Dataset
     from clrefract.metrics import psnr_ssim
     from clrefract.render import render_camera
     from clrefract.report import scene_truth
-    from clrefract.tracer import Tracer
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from diag_shape_gradient import quick_dataset
+    from clrefract.tracer import Tracer, TraceSettings
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="sphere,prism,drop")
@@ -59,9 +65,8 @@ def main() -> None:
             field = dataclasses.replace(truth, width=width)
             for ratio in floats(args.ratios):
                 step = width / ratio
-                tracer = Tracer(
-                    field, field.tracing_box(ds.box), step=step, precision=args.precision
-                )
+                settings = TraceSettings(step=step, precision=args.precision)
+                tracer = Tracer(field, field.tracing_box(ds.box), settings)
                 t0 = time.perf_counter()
                 scores, steps, rays = [], 0, 0
                 for cam, ref in zip(ds.test, refs):

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from clrefract.errors import ClrefractError
-from clrefract.fit import _toml, load_config, prepare_fit
+from clrefract.fit import load_config, prepare_fit, to_toml
 
 try:
     import tomllib
@@ -50,7 +50,7 @@ def resumed_copy(run: Path, dataset: Path, copy: Path, settings: dict):
     shutil.rmtree(copy, ignore_errors=True)
     shutil.copytree(run, copy)
     cfg = load_config(copy / "config.toml", settings)
-    (copy / "config.toml").write_text(_toml(cfg))
+    (copy / "config.toml").write_text(to_toml(cfg))
     return prepare_fit(dataset, copy, None, resume=True, stream=io.StringIO())
 
 

@@ -52,6 +52,7 @@ def worker(args) -> None:
     from clrefract.dataset import Dataset
     from clrefract.fields.voxel import VoxelGrid
     from clrefract.gradient import GradientEngine
+    from clrefract.tracer import TraceSettings
 
     ranks = parallel.world()
     ds = Dataset(Path(args.dataset))
@@ -59,7 +60,7 @@ def worker(args) -> None:
     rng = np.random.default_rng(0)
     env = ds.envmap()
     field = VoxelGrid(np.ones((args.res,) * 3), ds.box, eta_max=1.6)
-    engine = GradientEngine(field, ds.box, step=1.0, precision="float32")
+    engine = GradientEngine(field, ds.box, TraceSettings(step=1.0, precision="float32"))
     engine.set_params(1.0 + 0.05 * rng.uniform(size=args.res**3))
     sharded = parallel.ShardedEngine(engine, ranks, args.chunks)
     idx = rng.integers(0, len(o), args.batch)
@@ -121,7 +122,7 @@ def _time_exchange(sharded, repeats: int) -> dict:
         for _ in range(repeats):
             comm.Barrier()
             t0 = time.perf_counter()
-            sharded._gather(mine, sums, n + 1, [])
+            sharded.gather(mine, sums, n + 1, [])
             t_gather.append(time.perf_counter() - t0)
             comm.Barrier()
             t0 = time.perf_counter()

@@ -15,7 +15,7 @@ import numpy as np
 
 from clrefract.fields.analytic import Sphere
 from clrefract.snell import SnellRenderer
-from clrefract.tracer import Status, Tracer
+from clrefract.tracer import Status, Tracer, TraceSettings
 
 
 def rays(n: int, radius: float, max_b: float, seed: int = 0):
@@ -42,9 +42,9 @@ def main() -> None:
                 step = width / ratio
                 tr = Tracer(
                     Sphere(radius=radius, eta=eta, width=width),
-                    step=step,
-                    precision=precision,
-                    max_steps=int(2000 / step),
+                    settings=TraceSettings(
+                        step=step, precision=precision, max_steps=int(2000 / step)
+                    ),
                 )
                 t0 = time.perf_counter()
                 res = tr.trace(o, d)

@@ -25,7 +25,7 @@ from clrefract.fields.voxel import VoxelGrid
 from clrefract.gradcheck import smooth_env
 from clrefract.gradient import GradientEngine
 from clrefract.occupancy import distance_of, live_cells_levelset, live_cells_nodes
-from clrefract.tracer import Tracer
+from clrefract.tracer import Tracer, TraceSettings
 
 
 def hashgrid_ball():
@@ -84,8 +84,8 @@ def train_rows(o, d, rows_out) -> None:
         for precision in ("float64", "float32"):
             # as a fit runs: checkpoints every 8 steps, adjoints that grow 30x cut
             kw = dict(step=step, precision=precision, checkpoint_every=8, growth_max=30.0)
-            a, ta = timed_grad(GradientEngine(f, box, **kw), o, d, tgt, env)
-            eng = GradientEngine(f, box, skip_empty=True, **kw)
+            a, ta = timed_grad(GradientEngine(f, box, TraceSettings(**kw)), o, d, tgt, env)
+            eng = GradientEngine(f, box, TraceSettings(skip_empty=True, **kw))
             eng.tracer.set_occupancy(distance_of(live))
             b, tb = timed_grad(eng, o, d, tgt, env)
             ga, gb = a.grad, b.grad
@@ -161,9 +161,9 @@ def main() -> None:
     for name, f, step in scenes:
         box = f.tracing_box(Box())
         for precision in ("float32", "float64"):
-            a, ta = timed(Tracer(f, box=box, step=step, precision=precision), o, d)
+            a, ta = timed(Tracer(f, box, TraceSettings(step=step, precision=precision)), o, d)
             t0 = time.perf_counter()  # the occupancy, sampled on the device
-            skip = Tracer(f, box=box, step=step, precision=precision, skip_empty=True)
+            skip = Tracer(f, box, TraceSettings(step=step, precision=precision, skip_empty=True))
             t_occ = time.perf_counter() - t0
             b, tb = timed(skip, o, d)
             dd = np.abs(a.direction - b.direction).max(1)

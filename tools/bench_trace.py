@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from clrefract.fields.analytic import Blobs, Drop, Luneburg, Prism, Sphere  # noqa: E402
 from clrefract.fields.base import Box  # noqa: E402
 from clrefract.runtime import default_runtime  # noqa: E402
-from clrefract.tracer import Status, Tracer  # noqa: E402
+from clrefract.tracer import Status, Tracer, TraceSettings  # noqa: E402
 
 BOX = Box()
 
@@ -76,7 +76,7 @@ def bench_fields(n: int, step: float, repeats: int) -> list[dict]:
         for lanes in lane_choices:
             # expensive fields get fewer rays so every row takes similar time
             m = n if not name.startswith("hash") else max(n // 32, 4096)
-            tr = Tracer(f, BOX, step=step, lanes=lanes)
+            tr = Tracer(f, BOX, TraceSettings(step=step, lanes=lanes))
             tr.trace(o[:256], d[:256])
             sec, res = best_of(lambda: tr.trace(o[:m], d[:m]), repeats)  # noqa: B023
             steps = int(res.steps.sum())
@@ -109,7 +109,7 @@ def bench_fields(n: int, step: float, repeats: int) -> list[dict]:
     drjit_trace_blobs(*args)  # JIT warm-up
     sec, res = best_of(lambda: drjit_trace_blobs(*args), repeats)
     steps = int(np.sum(res["steps"]))
-    ref = Tracer(blobs, BOX, step=step, precision="float64", lanes=8).trace(o, d)
+    ref = Tracer(blobs, BOX, TraceSettings(step=step, precision="float64", lanes=8)).trace(o, d)
     err = float(np.abs(res["direction"] - ref.direction).max())
     rows.append(
         {
@@ -146,9 +146,7 @@ def bench_tradeoff(n: int, repeats: int) -> list[dict]:
                 tr = Tracer(
                     Luneburg(radius=radius),
                     BOX,
-                    step=step,
-                    integrator=integrator,
-                    precision=precision,
+                    TraceSettings(step=step, integrator=integrator, precision=precision),
                 )
                 tr.trace(o[:64], d[:64])
                 sec, res = best_of(lambda: tr.trace(o, d), repeats)  # noqa: B023
@@ -188,7 +186,9 @@ def bench_interior(n: int, repeats: int) -> list[dict]:
                 sigma = 0.45 * np.pi * radius
                 h = sigma / n_steps
                 tr = Tracer(
-                    Luneburg(radius=radius), BOX, step=h, integrator=integrator, precision=precision
+                    Luneburg(radius=radius),
+                    BOX,
+                    TraceSettings(step=h, integrator=integrator, precision=precision),
                 )
                 sec, (x, v) = best_of(
                     lambda: tr.propagate(p * (1 - 1e-6), d, n_steps),  # noqa: B023
@@ -241,8 +241,8 @@ def bench_long_rays(n: int, repeats: int) -> list[dict]:
     d = np.column_stack([rng.normal(0, 0.05, (n, 2)), np.ones(n)])
     rows = []
     for name, field, step, skip in cases:
-        two = Tracer(field, BOX, step=step, skip_empty=skip)
-        one = Tracer(field, BOX, step=step, skip_empty=skip)
+        two = Tracer(field, BOX, TraceSettings(step=step, skip_empty=skip))
+        one = Tracer(field, BOX, TraceSettings(step=step, skip_empty=skip))
         one.long_ray_steps = one.max_steps
         one.trace(o, d)  # PoCL specialises a kernel per launch size: not timed
         t_one, a = best_of(lambda: one.trace(o, d), repeats)  # noqa: B023

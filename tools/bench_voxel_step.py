@@ -22,7 +22,7 @@ from clrefract.fields.voxel import VoxelGrid
 from clrefract.metrics import psnr_ssim
 from clrefract.render import render_camera
 from clrefract.synth import MakeOptions, make_dataset
-from clrefract.tracer import Tracer
+from clrefract.tracer import Tracer, TraceSettings
 
 
 def score(tracer, ds, env, fine=None):
@@ -65,11 +65,11 @@ def main() -> None:
         for res in (int(r) for r in args.res.split(",")):
             vox = VoxelGrid.from_field(truth, box=ds.box, res=res, interp="bspline")
             cell = float(vox.spacing.min())
-            ref = Tracer(vox, box=ds.box, step=min(cell / 16, 0.1), precision="float64")
+            ref = Tracer(vox, ds.box, TraceSettings(step=min(cell / 16, 0.1), precision="float64"))
             fine = score(ref, ds, env)[4]
             steps = {"1 mm": 1.0, "cell": cell, "cell/2": cell / 2, "cell/4": cell / 4}
             for name, step in steps.items():
-                tr = Tracer(vox, box=ds.box, step=step, precision=args.precision)
+                tr = Tracer(vox, ds.box, TraceSettings(step=step, precision=args.precision))
                 render_camera(tr, ds.test[0], env)  # warm-up: the build
                 psnr, own, secs, per_ray, _ = score(tr, ds, env, fine)
                 row = dict(

@@ -22,9 +22,10 @@ import numpy as np
 
 from ..errors import ClrefractError
 from ..fields.base import Box
-from ..fields.hashgrid import HashGridConfig, HashGridField, _softplus_sigmoid
+from ..fields.hashgrid import HashGridConfig, HashGridField, softplus_sigmoid
 from ..imageio import atomic_path
 from .composite import composite, composite_backward, ray_samples
+from .volume import render_view
 
 DENSITY_BIAS = -5.0  # the head's start: sigma = softplus(-5) = 0.007/mm, nearly clear
 _LAUNCH = 1 << 20  # points per kernel launch (bounds device memory)
@@ -86,9 +87,9 @@ class NeuralField:
         a, _ = self.encoding.encode(np.asarray(pts, np.float64).reshape(-1, 3), p)
         *hidden, (wo, bo) = self.layers(p)
         for w, b in hidden:
-            a = _softplus_sigmoid(a @ w.T + b)[0]
+            a = softplus_sigmoid(a @ w.T + b)[0]
         o = a @ wo.T + bo
-        return _softplus_sigmoid(o[:, 0])[0], _sigmoid(o[:, 1:])
+        return softplus_sigmoid(o[:, 0])[0], _sigmoid(o[:, 1:])
 
     def to_dict(self) -> dict:
         return {k: v for k, v in asdict(self.config).items() if k not in ("eta_max", "interp")}
@@ -237,8 +238,6 @@ class NeuralModel:
         return density_surface(self.node_density(), self.box)
 
     def render(self, cam, env) -> np.ndarray:
-        from .straight import render_view
-
         return render_view(self.renderer, cam, env, block=1 << 14)  # ~1M samples a block
 
     def eta(self, pts):

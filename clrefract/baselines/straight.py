@@ -35,7 +35,7 @@ from ..imageio import atomic_path, ensure_out_dir
 from ..loss import srgb
 from ..progress import Progress
 from .surface import density_level, density_surface
-from .volume import StraightRenderer
+from .volume import StraightRenderer, render_view
 
 STYLES = {
     # no smoothness term on the fine grid: it cost a third of each step at 128^3, and a
@@ -196,17 +196,6 @@ class StraightModel:
 
     def surface(self, box):
         return density_surface(self.vol.reshape(4, self.res, self.res, self.res)[0], self.box)
-
-
-def render_view(renderer, cam, env, block: int = 1 << 18) -> np.ndarray:
-    """A camera's (H, W, 3) image through a straight-ray renderer, in blocks of rays."""
-    o, d = cam.rays()
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    rgb = np.empty((len(o), 3))
-    for s in range(0, len(o), block):
-        sl = slice(s, s + block)
-        rgb[sl] = renderer.render(o[sl], d[sl], env.lookup(d[sl]))[0]
-    return rgb.reshape(cam.height, cam.width, 3)
 
 
 def load_straight(path: Path, runtime=None):

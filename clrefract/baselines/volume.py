@@ -74,3 +74,14 @@ class StraightRenderer:
         self.k.straight_backward(q, (n,), None, *args, *extra)
         cl.enqueue_copy(q, grad, b_g)
         return grad
+
+
+def render_view(renderer, cam, env, block: int = 1 << 18) -> np.ndarray:
+    """A camera's (H, W, 3) image through a straight-ray renderer, in blocks of rays."""
+    o, d = cam.rays()
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    rgb = np.empty((len(o), 3))
+    for s in range(0, len(o), block):
+        sl = slice(s, s + block)
+        rgb[sl] = renderer.render(o[sl], d[sl], env.lookup(d[sl]))[0]
+    return rgb.reshape(cam.height, cam.width, 3)

@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ..errors import ClrefractError
-from .base import Field, _smoother, _smoother_d
+from .base import Field, smoother, smoother_d
 
 Vec3 = tuple[float, float, float]
 
@@ -22,7 +22,7 @@ class AnalyticField(Field):
         return {f"FIELD_{self.kind.upper()}": 1}
 
     def to_dict(self) -> dict:
-        return {"kind": self.kind, **{k: _plain(v) for k, v in asdict(self).items()}}
+        return {"kind": self.kind, **{k: as_plain(v) for k, v in asdict(self).items()}}
 
     # where params() holds centre coordinates (x, y, z): shifted with the tracer's origin
     center_slots = (0, 1, 2)
@@ -37,9 +37,9 @@ class AnalyticField(Field):
         return p
 
 
-def _plain(v):
+def as_plain(v):
     if isinstance(v, tuple | list):
-        return [_plain(x) for x in v]
+        return [as_plain(x) for x in v]
     return v
 
 
@@ -210,8 +210,8 @@ class SmoothSolid(AnalyticField):
         band = (s > 0) & (s < 1)
         if band.any():
             n = self.sdf(pts[band])[1]
-            grad[band] = (-dn * _smoother_d(s[band]) / self.width)[:, None] * n
-        return 1 + dn * _smoother(s), grad
+            grad[band] = (-dn * smoother_d(s[band]) / self.width)[:, None] * n
+        return 1 + dn * smoother(s), grad
 
 
 @dataclass

@@ -54,17 +54,17 @@ class Box:
         return cls(tuple(map(float, d["lo"])), tuple(map(float, d["hi"])), float(d["margin"]))
 
 
-def _smoother(t):
+def smoother(t):
     t = np.clip(t, 0.0, 1.0)
     return t * t * t * (t * (t * 6 - 15) + 10)
 
 
-def _smoother_d(t):
+def smoother_d(t):
     inside = (t > 0) & (t < 1)
     return np.where(inside, 30 * t * t * (t * (t - 2) + 1), 0.0)
 
 
-def _smoother_dd(t):
+def smoother_dd(t):
     inside = (t > 0) & (t < 1)
     return np.where(inside, 60 * t * (1 - t) * (1 - 2 * t), 0.0)
 
@@ -74,9 +74,9 @@ def box_window(box: Box, pts: np.ndarray):
     lo, hi, m = np.asarray(box.lo), np.asarray(box.hi), box.margin
     d0 = (pts - lo) / m - 1
     d1 = (hi - pts) / m - 1
-    s0, s1 = _smoother(d0), _smoother(d1)
+    s0, s1 = smoother(d0), smoother(d1)
     a = s0 * s1  # (n, 3) per-axis factors
-    ga = (_smoother_d(d0) * s1 - s0 * _smoother_d(d1)) / m
+    ga = (smoother_d(d0) * s1 - s0 * smoother_d(d1)) / m
     w = a.prod(axis=1)
     grad = np.stack(
         [ga[:, 0] * a[:, 1] * a[:, 2], a[:, 0] * ga[:, 1] * a[:, 2], a[:, 0] * a[:, 1] * ga[:, 2]],

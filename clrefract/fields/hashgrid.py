@@ -46,7 +46,7 @@ import numpy as np
 
 from ..errors import ClrefractError
 from ..imageio import atomic_path
-from .base import Box, Field, _smoother, _smoother_d, _smoother_dd, box_window
+from .base import Box, Field, box_window, smoother, smoother_d, smoother_dd
 
 INTERPS = ("smoothstep", "trilinear")
 OUTPUTS = ("sigmoid", "ramp")
@@ -191,7 +191,7 @@ def dense_index(i, j, k, n: int) -> np.ndarray:
     return (np.asarray(i, np.int64) * s + np.asarray(j, np.int64)) * s + np.asarray(k, np.int64)
 
 
-def _softplus_sigmoid(h):
+def softplus_sigmoid(h):
     """softplus(h) and its derivative sigmoid(h), sharing one exponential."""
     e = np.exp(-np.abs(h))
     r = 1.0 / (1.0 + e)
@@ -208,7 +208,7 @@ def _output_map(o, k: float, ramp: bool):
     with S the C2 quintic (exactly 0 below o = -1 and k above 1, as a level set's ramp)."""
     if ramp:
         t = 0.5 * (o + 1)
-        return k * _smoother(t), 0.5 * k * _smoother_d(t), 0.25 * k * _smoother_dd(t)
+        return k * smoother(t), 0.5 * k * smoother_d(t), 0.25 * k * smoother_dd(t)
     so = _sigmoid(o)
     g0 = k * so
     g1 = g0 * (1 - so)
@@ -219,7 +219,7 @@ def _smoother_inverse(y: float) -> float:
     """t in [0, 1] with S(t) = y, 0 < y < 1 (S the C2 quintic, increasing)."""
     from scipy.optimize import brentq
 
-    return float(brentq(lambda t: float(_smoother(t)) - y, 0.0, 1.0, xtol=1e-14))
+    return float(brentq(lambda t: float(smoother(t)) - y, 0.0, 1.0, xtol=1e-14))
 
 
 def _axis_weights(t, smooth: bool):
@@ -234,7 +234,7 @@ def _window_hessian(box: Box, pts: np.ndarray):
     lo, hi, m = np.asarray(box.lo), np.asarray(box.hi), box.margin
     d0, d1 = (pts - lo) / m - 1, (hi - pts) / m - 1
 
-    s, ds, dds = _smoother, _smoother_d, _smoother_dd
+    s, ds, dds = smoother, smoother_d, smoother_dd
     a = s(d0) * s(d1)  # per-axis factors (n, 3) and their derivatives in x
     da = (ds(d0) * s(d1) - s(d0) * ds(d1)) / m
     dda = (dds(d0) * s(d1) - 2 * ds(d0) * ds(d1) + s(d0) * dds(d1)) / m**2
@@ -523,7 +523,7 @@ class HashGridField(Field):
         a, da = feat, np.moveaxis(dfeat, 2, 0).reshape(3 * n, -1)
         for w, b in layers[:-1]:
             h = a @ w.T + b
-            a, sg = _softplus_sigmoid(h)
+            a, sg = softplus_sigmoid(h)
             da = (da @ w.T).reshape(3, n, -1)
             da *= sg
             da = da.reshape(3 * n, -1)
@@ -582,7 +582,7 @@ class HashGridField(Field):
         for wm, b in layers[:-1]:
             h = a @ wm.T + b
             hg = ag @ wm.T
-            a_new, s = _softplus_sigmoid(h)
+            a_new, s = softplus_sigmoid(h)
             tape.append((a, ag, s, hg))
             if hessian:
                 q = s * (1 - s) * (mut * hg).sum(0)

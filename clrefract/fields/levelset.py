@@ -21,8 +21,8 @@ import numpy as np
 
 from ..errors import ClrefractError
 from ..imageio import atomic_path
-from .base import Box, Field, _smoother, _smoother_d, box_window
-from .voxel import _nodes, _shape, grid_defines, interpolate
+from .base import Box, Field, box_window, smoother, smoother_d
+from .voxel import grid_defines, grid_nodes, grid_shape, interpolate
 
 
 class LevelSetField(Field):
@@ -102,8 +102,8 @@ class LevelSetField(Field):
         g, dg = self.sdf(pts)
         s = 0.5 - g / self.width
         dn = self.eta - 1.0
-        f = dn * _smoother(s)
-        df = (-dn * _smoother_d(s) / self.width)[:, None] * dg
+        f = dn * smoother(s)
+        df = (-dn * smoother_d(s) / self.width)[:, None] * dg
         w, dw = box_window(self.box, pts)
         return 1.0 + w * f, dw * f[:, None] + w[:, None] * df
 
@@ -173,7 +173,7 @@ class LevelSetField(Field):
         return float((r * r).mean()), np.concatenate([grad.ravel(), [0.0]])
 
     def node_points(self) -> np.ndarray:
-        return _nodes(self.box, self.shape)
+        return grid_nodes(self.box, self.shape)
 
     @classmethod
     def from_sdf(
@@ -181,8 +181,8 @@ class LevelSetField(Field):
     ) -> LevelSetField:
         """phi sampled from a signed distance function sdf(pts) -> (n,) at the nodes of a
         res^3 grid over box (the samples are the control points)."""
-        shape = _shape(res)
-        pts = _nodes(box, shape)
+        shape = grid_shape(res)
+        pts = grid_nodes(box, shape)
         return cls(np.asarray(sdf(pts), np.float64).reshape(shape), box, eta, width, eta_max)
 
     # --- files ------------------------------------------------------------------------------

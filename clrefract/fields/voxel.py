@@ -311,7 +311,7 @@ class VoxelGrid(Field):
 
     def node_points(self, shape=None) -> np.ndarray:
         """Positions (n, 3) of the nodes of a grid of `shape` over this box, C order."""
-        return _nodes(self.box, self.shape if shape is None else shape)
+        return grid_nodes(self.box, self.shape if shape is None else shape)
 
     def resampled_values(self, a: np.ndarray, res) -> np.ndarray:
         """An array `a` of node values on this grid (eta, Adam moments) resampled trilinearly
@@ -320,9 +320,9 @@ class VoxelGrid(Field):
         B-spline grids this resamples the control points, not the spline: exact for linear
         fields, otherwise the finer spline is a little less smooth than the old one (no exact
         knot insertion)."""
-        shape = _shape(res)
+        shape = grid_shape(res)
         a = np.asarray(a, np.float64).reshape(self.values.shape)
-        g, _ = interpolate(a, self.box, _nodes(self.box, shape), "trilinear")
+        g, _ = interpolate(a, self.box, grid_nodes(self.box, shape), "trilinear")
         return g.reshape(shape)
 
     def resampled(self, res) -> VoxelGrid:
@@ -345,8 +345,8 @@ class VoxelGrid(Field):
         "bspline" they are used as control points without a prefilter, so the grid's eta is
         the field smoothed over about a cell (it does not pass through the samples)."""
         box = box or Box()
-        shape = _shape(res)
-        pts = _nodes(box, shape)
+        shape = grid_shape(res)
+        pts = grid_nodes(box, shape)
         eta = np.concatenate(
             [field.eval(pts[a : a + _CHUNK])[0] for a in range(0, len(pts), _CHUNK)]
         )
@@ -411,13 +411,13 @@ class VoxelGrid(Field):
             raise ClrefractError(f"{path}: {exc}") from None
 
 
-def _shape(res) -> tuple[int, int, int]:
+def grid_shape(res) -> tuple[int, int, int]:
     shape = (int(res),) * 3 if np.ndim(res) == 0 else tuple(int(n) for n in res)
     if len(shape) != 3 or min(shape) < 2:
         raise ClrefractError(f"voxel resolution must be >= 2 nodes per axis, got {res!r}")
     return shape
 
 
-def _nodes(box: Box, shape) -> np.ndarray:
+def grid_nodes(box: Box, shape) -> np.ndarray:
     axes = [np.linspace(lo, hi, n) for lo, hi, n in zip(box.lo, box.hi, shape, strict=True)]
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)

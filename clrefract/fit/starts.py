@@ -1,18 +1,19 @@
-"""A fit's start from the visual hull: the refraction masks, the hull they carve, the box it
-needs, and the searches that fill it with the index and the offset (and, for a level set, the
-smoothing and the tightened shape) of lowest loss. `HullStart` is the part of `Fit` that does
-this; it reads the fit's dataset, config, field and loss.
+"""Where a fit starts: empty space, or the visual hull of the refraction masks filled with the
+index and grown by the offset of lowest loss (for a level set, also smoothed, tightened or
+hollowed); a hash grid starts as that level set, distilled into it.
 """
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 
-from . import start_losses
-from .errors import ClrefractError
-from .progress import Progress
+from .. import start_losses
+from ..errors import ClrefractError
+from ..progress import Progress
+from .config import to_toml
+from .distil import fit_to_field
+from .kinds import guide_config, make_field
+from .rays import Tag
 
 # the start search's candidates: a level set's coarse offsets (cells) searched jointly with
 # the index, then line searches (index step, offset step in cells) of LINE_TRIES each; a
@@ -32,8 +33,6 @@ SHELL_CELLS = (2.0, 4.0, 6.0)
 # picks), where 256 rays of a 24-pixel sphere picked another
 COARSE_SHARE = 4
 COARSE_RAYS = 2048
-# the tag of the start search's fixed batch of mask rays (Fit._mask_batch)
-START_BATCH = 7
 
 
 def search_losses(indices: int, smoothings: list[int], shells: int = 0) -> int:
@@ -54,33 +53,39 @@ def coarse_rays(batch: int) -> int:
     return max(batch // COARSE_SHARE, min(batch, COARSE_RAYS))
 
 
-class HullStart:
-    """Start a `Fit` from the visual hull of its training views (a mixin: the fit's own state)."""
+class Hulls:
+    """The training views' visual hulls, by the fit's hull rule, kept for the last grid."""
 
-    def _hull_fit(self) -> bool:
-        return self.cfg.init == "hull"
+    def __init__(self, ds, cfg, rays):
+        self.ds, self.cfg, self.rays = ds, cfg, rays
+        self._kept: dict = {}
 
-    def _refraction_masks(self) -> list:
-        from .hull import refraction_mask
+    def at(self, box, res: int):
+        if res not in self._kept:
+            self._kept = {res: self.visual(box, res)}
+        return self._kept[res]
 
-        if self._masks is None:
-            env = self._env_full
-            self._masks = [  # the user's object masks where the capture has them
-                self.ds.mask(cam)
-                if self.ds.has_mask(cam)
-                else refraction_mask(cam, self.ds.image(cam), env, self.cfg.mask_threshold)
-                for cam in self.ds.train
-            ]
-        return self._masks
+    def visual(self, box, res: int):
+        """The visual hull on res^3 nodes over box."""
+        from ..hull import visual_hull
 
-    def _object_box(self):
-        """The box around the visual hull that a level set needs: its margin (where the
+        return visual_hull(
+            box,
+            self.ds.train,
+            self.rays.masks(),
+            res,
+            tolerance=self.cfg.hull_tolerance,
+            carve=self.cfg.hull_carve,
+        )
+
+    def object_box(self):
+        """The box around the visual hull that a surface needs: its margin (where the
         window brings eta to 1) and a band of the interface width beyond the hull. Rays fly
         straight to it, and its grid spends every node near the object."""
-        from .fields.base import Box
+        from ..fields.base import Box
 
         box = self.ds.box
-        hull = self._visual_hull(box, 48)
+        hull = self.visual(box, 48)
         if not hull.found:
             raise ClrefractError(
                 f"{self.ds.root}: the refraction masks do not agree on an object (a faint "
@@ -95,46 +100,102 @@ class HullStart:
         hi = np.minimum(hi + pad, box.hi)
         return Box(tuple(lo.tolist()), tuple(hi.tolist()), box.margin)
 
-    def _hull(self, res: int):
-        if res not in self._hulls:
-            self._hulls = {res: self._visual_hull(self.box, res)}
-        return self._hulls[res]
 
-    def _visual_hull(self, box, res: int):
-        """The training views' visual hull on res^3 nodes over box, by the fit's hull rule."""
-        from .hull import visual_hull
+class EmptyStart:
+    """eta = 1 everywhere."""
 
-        return visual_hull(
-            box,
-            self.ds.train,
-            self._refraction_masks(),
-            res,
-            tolerance=self.cfg.hull_tolerance,
-            carve=self.cfg.hull_carve,
-        )
+    def run(self, fit, res: int) -> None:
+        fit.bind(fit.make_field(res))
 
-    def _update_free(self) -> None:
-        """Nodes whose eta may change: near the hull (everywhere without one)."""
-        self._free = None
-        if self._hull_fit() and self.cfg.field == "voxel" and self.cfg.free_cells >= 0:
-            hull = self._hull(self.field.values.shape[0])
-            if hull.found:
-                self._free = hull.dilated(self.cfg.free_cells).ravel()
 
-    def _fill_hull(self) -> None:
+class VoxelHullStart:
+    """A voxel grid with the hull filled; eta changes near the hull alone (free_cells)."""
+
+    def run(self, fit, res: int) -> None:
+        fit.bind(fit.make_field(res))
+        HullSearch(fit, fit.bound, levelset=False).fill()
+
+
+class LevelSetHullStart:
+    """A level set of the hull, smoothed or tightened or hollowed, grown and filled."""
+
+    def run(self, fit, res: int) -> None:
+        fit.bind(fit.make_field(res))
+        HullSearch(fit, fit.bound, levelset=True).fill()
+
+
+class DistilledStart:
+    """A hash grid starts as the level-set start (hull, index and offset searched the same
+    way), fitted to its eta at points of the box: it starts where a level set does, as its
+    output bias alone would take thousands of steps to reach glass. The level set (and the
+    eta_max it was made with) is returned: a line search follows it."""
+
+    def run(self, fit, res: int) -> None:
+        cfg = guide_config(fit.cfg, fit.ds.scene.eta_range[1])
+        guide = fit.bound_for(make_field(cfg, fit.box, fit.eta_max, res), step=cfg.step)
+        HullSearch(fit, guide, levelset=True).fill()
+        made_with = fit.eta_max
+        if not fit.cfg.eta_max:
+            fit.eta_max = fit.kind.eta_top(fit.cfg, fit.init_info["eta"])
+        rms = distil_start(fit, guide.field)
+        fit.init_info["distilled_rms"] = rms
+        fit.stream.write(f"start: hash grid fitted to the level-set start (eta RMS {rms:.4f})\n")
+        fit.out.write_json("init.json", fit.init_info)
+        return guide, made_with
+
+
+def distil_start(fit, source) -> float:
+    """Bind a fresh hash grid fitted to another field (`source.eval`), in the fit's box;
+    the RMS error of eta."""
+    field = fit.make_field(0)
+    rms = fit_to_field(
+        field,
+        source,
+        fit.cfg.width,
+        fit.cfg.distil_iterations,
+        fit.cfg.seed,
+        stream=fit.stream,
+        device=fit.distil_device(),
+    )
+    fit.bind(field)
+    return rms
+
+
+STARTS = {
+    "empty": EmptyStart,
+    "voxel-hull": VoxelHullStart,
+    "levelset-hull": LevelSetHullStart,
+    "distilled": DistilledStart,
+}
+
+
+class HullSearch:
+    """Fill a bound field with the hull: the index and offset (a level set: and the shape
+    and smoothing) of lowest loss on a fixed batch of rays through the masks."""
+
+    def __init__(self, fit, bound, levelset: bool):
+        self.fit, self.bound, self.levelset = fit, bound, levelset
+        self.cfg, self.ds, self.stream = fit.cfg, fit.ds, fit.stream
+        self._bar = None
+        self._losses = None
+        self._at = ""  # the shape and smoothing the search is at (their key)
+        self._best_seen = np.inf
+
+    def fill(self) -> None:
         """Fill the hull with the index, and grow or shrink it by the offset, that give the
         lowest loss on a fixed batch of rays through the masks (line searches). A level set
         also picks how much to smooth the hull: a visual hull from finitely many views is
         faceted (flat between the view cones), and a sharp surface shows every facet."""
-        from .hull import touches_frame
+        from ..hull import touches_frame
 
-        hull = self._hull(self.field.values.shape[0])
+        fit = self.fit
+        hull = fit.hulls.at(fit.box, self.bound.field.values.shape[0])
         rejected = [self.ds.train[v].name for v in hull.rejected]
-        levelset = self._levelset_bound()
+        levelset = self.levelset
         if not hull.found:
             self.stream.write("start: no refraction mask agrees across views; eta = 1\n")
             return
-        masks = self._refraction_masks()
+        masks = fit.rays.masks()
         cut = [cam.name for cam, m in zip(self.ds.train, masks) if touches_frame(m)]
         if 2 * len(cut) > len(masks):
             self.stream.write(
@@ -142,23 +203,21 @@ class HullStart:
                 f"{len(masks)} training views; where none of them sees it the hull cannot "
                 "close (frame the whole object, or give a tighter --box)\n"
             )
-        idx = self._mask_batch(START_BATCH)
+        idx = fit.rays.mask_batch(Tag.START)
         etas = np.linspace(1.0, self.ds.scene.eta_range[1], 9)
         shapes = self._start_shapes(hull) if levelset else []
         shells = len(SHELL_CELLS) if levelset and self.cfg.shell_starts else 0
-        self._search_bar = Progress(
+        self._bar = Progress(
             1 + search_losses(len(etas) - 1, [len(s[2]) for s in shapes], shells),
             "start",
             unit="losses",
             stream=self.stream,
         )
         self._best_seen = np.inf
-        from .fit import _toml
-
-        digest = start_losses.fingerprint(_toml(self.cfg), self.ds.root, self.out)
-        self._losses = start_losses.StartLosses(self.out, digest)
+        digest = start_losses.fingerprint(to_toml(self.cfg), self.ds.root, fit.out.path)
+        self._losses = start_losses.StartLosses(fit.out.path, digest)
         try:
-            self._search_at = "empty"
+            self._at = "empty"
             empty = self._loss_of(hull, idx, 1.0, 0.0)
             if levelset:
                 best = (np.inf, 1.0, 0.0, 0.0, "visual", hull)
@@ -170,7 +229,7 @@ class HullStart:
                     # the first that scores no better: more only rounds the shape more
                     near = (np.inf, pick)
                     for sigma in shape.width * sigmas:
-                        self._search_at = f"{name}|{sigma:.9g}"
+                        self._at = f"{name}|{sigma:.9g}"
                         trial = self._search_levelset(shape.smoothed(sigma), idx, etas, near[1])
                         if trial[0] >= near[0]:
                             break
@@ -179,7 +238,7 @@ class HullStart:
                             best = (*trial, float(sigma), name, shape)
                 loss, eta, offset, sigma, kind, hull = best
             else:
-                self._search_at = "visual"
+                self._at = "visual"
                 loss, eta, offset = self._search_voxel(hull, idx, etas)
                 sigma, kind = 0.0, "visual"
         finally:
@@ -189,7 +248,7 @@ class HullStart:
                 f"start: {self._losses.reused} losses taken up from an earlier start "
                 f"({self._losses.path.name})\n"
             )
-        bar, self._search_bar = self._search_bar, None
+        bar, self._bar = self._bar, None
         if bar.done < bar.total:  # candidates skipped (indices at or below 1)
             bar.update(bar.total - bar.done, best=self._best_seen)
         if not loss < empty:
@@ -197,7 +256,7 @@ class HullStart:
         hull = hull.smoothed(sigma)
         occ = hull.shell(offset).ravel()
         self._set_start(hull, eta, offset)
-        self.init_info = {
+        fit.init_info = {
             "hull_fraction": float((occ > 0.5).mean()),
             "mask_fraction": hull.mask_fraction,
             "eta": eta,
@@ -215,21 +274,21 @@ class HullStart:
                 "(their masks cut into what the others agree on)\n"
             )
         self.stream.write(
-            f"start: {kind} hull {100 * self.init_info['hull_fraction']:.2f}% of the box, "
+            f"start: {kind} hull {100 * fit.init_info['hull_fraction']:.2f}% of the box, "
             f"offset {offset:+.2f} mm, smoothed {sigma:.1f} mm, filled with eta {eta:.3f} "
             f"(loss {loss:.4g}; empty {empty:.4g})\n"
         )
-        (self.out / "init.json").write_text(json.dumps(self.init_info, indent=2))
+        fit.out.write_json("init.json", fit.init_info)
 
     def _start_shapes(self, hull):
         """(name, hull, smoothings in cells) the level-set start searches: the visual hull,
         and where asked the hull tightened onto the faces its views roof over."""
         shapes = [("visual", hull, np.array([0.0, 1.0, 2.0, 3.0, 4.0, 6.0]), None)]
         if self.cfg.tighten_hull:
-            from .hull_tighten import FLOW_TIMES, tighten
+            from ..hull_tighten import FLOW_TIMES, tighten
 
-            masks = self._refraction_masks()
-            tight = tighten(hull, self.box, self.ds.train, masks, self.cfg.seed)
+            masks = self.fit.rays.masks()
+            tight = tighten(hull, self.fit.box, self.ds.train, masks, self.cfg.seed)
             for time, shape in zip(FLOW_TIMES, tight):
                 shape = (f"tightened {time:g} mm^2", shape, np.array([0.0, 1.0, 2.0]), None)
                 shapes.insert(0, shape)
@@ -242,7 +301,7 @@ class HullStart:
         best = (np.inf, "", hull, 1.0)
         for cells in SHELL_CELLS:
             name = f"shell {cells:g} cells"
-            self._search_at = f"{name}|0"
+            self._at = f"{name}|0"
             shell = hull.hollowed(cells * hull.width)
             for e in etas[1:]:
                 loss = self._loss_of(shell, idx, float(e), 0.0, coarse=True)
@@ -255,15 +314,15 @@ class HullStart:
         """The loss of a candidate start, traced, or kept from an interrupted start; on
         `coarse_rays` of the rays `idx` for a coarse grid."""
         n = coarse_rays(len(idx)) if coarse else len(idx)
-        key = f"{self._search_at}|{eta:.9g}|{offset:.9g}" + ("|coarse" if n < len(idx) else "")
+        key = f"{self._at}|{eta:.9g}|{offset:.9g}" + ("|coarse" if n < len(idx) else "")
         loss = self._losses.get(key)
         if loss is None:
             self._set_start(hull, eta, offset)
-            loss = self._forward_loss(idx[:n])
+            loss = self.fit.objective.loss(self.bound.tracer, idx[:n])
             self._losses.put(key, loss)
-        if self._search_bar is not None:
+        if self._bar is not None:
             self._best_seen = min(self._best_seen, loss)
-            self._search_bar.update(best=self._best_seen)
+            self._bar.update(best=self._best_seen)
         return loss
 
     def _search_voxel(self, hull, idx, etas):
@@ -312,18 +371,13 @@ class HullStart:
                             loss, eta = trial, float(e)
         return loss, eta, offset
 
-    def _levelset_bound(self) -> bool:
-        from .fields.levelset import LevelSetField
-
-        return isinstance(self.field, LevelSetField)
-
     def _set_start(self, hull, eta: float, offset: float) -> None:
         """The field as the hull grown by offset mm and filled with index eta."""
-        if self._levelset_bound():
+        params = self.bound.params.copy()
+        if self.levelset:
             phi = -np.clip(hull.distance + offset, -8 * hull.width, 8 * hull.width)
-            self.params[:-1] = phi.ravel()
-            self.params[-1] = eta
+            params[:-1] = phi.ravel()
+            params[-1] = eta
         else:
-            self.params[:] = 1.0 + (eta - 1.0) * hull.shell(offset).ravel()
-        self.field.set_data(self.params)
-        self._upload()
+            params[:] = 1.0 + (eta - 1.0) * hull.shell(offset).ravel()
+        self.bound.set_params(params, self.fit.it)

@@ -22,18 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..locations import cache_dir, kernel_source
+
 WIDTHS = (1, 2, 4, 8, 16)
 PROBE_TIMEOUT_S = 180.0
 SLOW_BUILD_S = 30.0  # a probe this small builds in well under a second on a healthy driver
-
-
-def cache_dir() -> Path:
-    """CLREFRACT_CACHE_DIR, else $XDG_CACHE_HOME/clrefract, else ~/.cache/clrefract."""
-    env = os.environ.get("CLREFRACT_CACHE_DIR")
-    if env:
-        return Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "clrefract"
 
 
 def reference(a: np.ndarray) -> np.ndarray:
@@ -59,8 +52,8 @@ def _probe_inputs(n: int) -> np.ndarray:
 
 def probe_width(runtime, lanes: int, precision: str) -> dict:
     """Build and run the probe at one width in this process; returns a result record."""
-    from .errors import BuildError
-    from .fields.base import Box
+    from ..errors import BuildError
+    from ..fields.base import Box
 
     t0 = time.perf_counter()
     try:
@@ -104,9 +97,7 @@ def probe_width(runtime, lanes: int, precision: str) -> dict:
 @functools.lru_cache(maxsize=1)
 def _source_digest() -> str:
     """The probe's own code: a new probe invalidates what the old one found."""
-    from .runtime import kernel_source
-
-    src = Path(__file__).read_bytes()
+    src = b"".join(p.read_bytes() for p in sorted(Path(__file__).parent.glob("*.py")))
     src += kernel_source("probe.cl").encode() + kernel_source("common.h").encode()
     return hashlib.sha1(src).hexdigest()[:12]
 
@@ -209,18 +200,3 @@ def _probe(info, precision: str, key: str) -> dict:
     report = {"widths": widths, "results": results, "note": note}
     _write_cache(key, report)
     return report
-
-
-def _main(argv: list[str]) -> int:
-    from .runtime import Runtime
-
-    pi, di, precision = int(argv[0]), int(argv[1]), argv[2]
-    rt = Runtime(f"{pi}:{di}", probe_lanes=False)
-    for w in WIDTHS:
-        rec = probe_width(rt, w, precision)
-        print(json.dumps(rec), flush=True)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(_main(sys.argv[1:]))

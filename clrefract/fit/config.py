@@ -1,0 +1,310 @@
+"""A fit's configuration: `FitConfig`, its TOML, and the checks that need no field kind.
+
+Defaults per field kind and optimiser, and the checks that depend on them, belong to the
+field adapters (kinds.py) and `load_config` (configure.py).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import tomli_w
+
+from ..dataset import box_values
+from ..errors import ClrefractError
+from ..limits import FIT_BYTES_PER_RAY, INT32_MAX, check_count, check_memory
+
+try:
+    import tomllib
+except ImportError:  # Python 3.10
+    import tomli as tomllib
+
+
+@dataclass
+class FitConfig:
+    field: str = "voxel"  # "levelset", "voxel" or "hashgrid"
+    # voxel grid (level set: its grid of distances): final resolution, and the
+    # coarse-to-fine resolutions before it (voxel grids only); 0: one cell per pixel
+    # footprint at the object (clrefract/resolution.py), recorded in config.toml
+    res: int = 64
+    res_schedule: tuple = ()  # e.g. (16, 32); the hull start wants the final grid at once
+    interp: str = "bspline"  # C2 tricubic B-spline; "smoothstep" (C1) or "trilinear"
+    # level set: one index inside a surface ramped across `width` mm (a hash grid from
+    # the hull: 0.5 unless told, as its optimizer and line_batch; kinds.HASHGRID_HULL_DEFAULTS)
+    width: float = 1.0
+    # Adam moves every band node by about its rate each step: from the level-set start on
+    # 128 x 128 views, 0.02 and 0.005 mm climbed, 0.00125 mm (index 3e-4) descended
+    lr_phi: float = 0.00125  # mm per step, the distance values
+    lr_index: float = 3e-4  # the level set's index
+    # hash grid
+    levels: int = 8
+    features: int = 2
+    log2_table: int = 16
+    n_min: int = 8
+    n_max: int = 64  # finest level over the object's box: about 1 mm cells on 128 x 128 views
+    # (0: one cell per pixel footprint, as res = 0)
+    hidden: int = 32
+    layers: int = 2
+    eta_max: float = 0.0  # 0: the scene's upper eta bound (hash grid: see index_headroom)
+    # the MLP's output o becomes eta through "ramp", the level set's C2 ramp over o in
+    # [-1, 1] (eta exactly 1 and exactly eta_max beyond it: an interface as a level set's,
+    # traced in steps of width/4), or "sigmoid" (smooth everywhere, what a start from empty
+    # space needs; steps of width/8); "": ramp from the hull, sigmoid from empty space
+    output: str = ""
+    # a sigmoid hash grid from the hull starts with eta_max this far above the start's
+    # index, in units of index - 1: the MLP's output is then 6 inside the glass, where the
+    # sigmoid is saturated and keeps eta flat (noise in grad eta there bends every ray
+    # crossing it); a ramp's eta_max is the index itself, flat past the ramp's top
+    index_headroom: float = 0.0025
+    # fitting the hash grid to the level-set start: the true sphere renders at 30.99 dB after
+    # 1000 steps, 31.71 after 2000 (the level set itself: 31.86)
+    distil_iterations: int = 2000
+    # where that fitting (and each line-search step's refit) runs: "device", the fit's
+    # OpenCL device in its precision (kernels_cl/hashgrid_distil.cl; 3.2x the host's steps
+    # per second on this 2-core CPU), or "host", float64 NumPy on the host's cores
+    distil_on: str = "device"
+    # optimisation
+    iterations: int = 600  # Adam's; a line search's default is LINE_SEARCH_ITERATIONS
+    batch: int = 8192
+    lr: float = 5e-3  # voxel values; the index of a level set
+    # hash grid from its hull start: 1e-2 and 1e-3 raised the held-out loss of the drop,
+    # these lowered it (by little)
+    lr_table: float = 1e-3
+    lr_mlp: float = 1e-4
+    lr_final: float = 0.1  # learning rates decay exponentially to this fraction
+    # "adam", or "line-search" (level sets: each step keeps the rays whose adjoint grows at
+    # most keep_growth, smooths the phi gradient over the grad_sigma scales (cells, each
+    # weighted by its square) and takes the best of line_steps mm along it;
+    # clrefract/fit/linesearch.py): from the quick sphere's start at 0.5 mm, 8 steps of
+    # 60,000 rays took the test views from 31.98 to 33.59 dB. A hash grid from the hull
+    # moves the level set it was distilled from that way, and is fitted to it (`refit`);
+    # it is that fit's default
+    optimizer: str = "adam"
+    keep_growth: float = 10.0
+    grad_sigma: tuple = (3.0, 6.0, 12.0)
+    line_steps: tuple = (0.003, 0.01, 0.03, 0.1)
+    # index moves a line-search step tries after its shape move, down the kept rays' index
+    # gradient (the best, or none); (): the index stays the start's
+    index_steps: tuple = ()
+    # a refit starts from the grid's last fit: on a sphere grown 0.1 mm a step, 100, 200 and
+    # 300 iterations left eta RMS 0.00032, 0.00029 and 0.00028 after four steps
+    refit_iterations: int = 200
+    # "best": a hash grid's line search validates the level set it moves, and the grid is
+    # fitted to the best step once, at the end; "step": after every move taken, and the grid
+    # is validated (a refit and its validation were half of a step on the quick sphere)
+    refit: str = "best"
+    # after a line search, its best level set grown and its index moved together
+    # (clrefract/fit/finishes.py), kept where the held-out views agree
+    size_search: bool = True
+    line_batch: int = 0  # mask rays a line-search step takes (0: batch, as the start's search)
+    reg: float = 1e-4  # weight of the smoothness regulariser
+    sparsity: float = 0.0  # weight of an L1 pull of voxel values towards eta = 1 (empty space)
+    # start: "hull" fills the visual hull of the refraction masks with the index that a
+    # line search on the loss picks, and changes eta only near the hull; "empty": eta = 1
+    init: str = "hull"
+    mask_threshold: float = 0.05  # sRGB difference from the straight view that marks a pixel
+    free_cells: int = 2  # cells around the hull where eta may change (-1: everywhere)
+    hull_tolerance: float = 0.03  # fraction of the views a hull point may lie outside
+    # a view whose mask carves more than this share of the other views' hull has holes, and
+    # is left out of the hull (0: keep every view; clrefract/hull.py, carving_views)
+    hull_carve: float = 0.02
+    # level sets also try the hull tightened by silhouette-held curvature flow (flat faces
+    # the views roof over come out flat; clrefract/hull_tighten.py), kept if its loss is lower
+    tighten_hull: bool = True
+    # level sets also try the hull hollowed to shells 2, 4 and 6 cells deep (a bowl, a glass:
+    # a hollow that no silhouette shows, where the whole hull scores worse than air)
+    shell_starts: bool = True
+    # share of each training batch drawn from the refraction masks (grown by 2 pixels), the
+    # rest from all pixels; 0: all pixels alike (a mask rarely covers more than a tenth)
+    mask_share: float = 0.0
+    # compare training images by blocks of this many pixels a side at first, halving to
+    # single pixels by block_until of the iterations (0 or 1: pixels throughout): the loss of
+    # block means is smooth over image shifts up to a block, and zero at the truth
+    block: int = 0
+    block_until: float = 0.5
+    env_blur: float = 0.0  # initial environment blur in pixels, sharpened to 0
+    blur_until: float = 0.5  # fraction of the iterations over which the blur goes to 0
+    # mm; 0: width/4 for a level set and a hash grid (finer for glass above index 1.5,
+    # interface_step_scale); half a cell of the final grid for a voxel grid; the start
+    # resolves it into config.toml where it is not width/4 (voxel_step)
+    step: float = 0.0
+    # forward states kept every this many steps for the backward pass (0: constant memory);
+    # they stop the re-integrated ray drifting away through sharp interfaces
+    backward_checkpoints: int = 8
+    # a ray's backward pass stops once its adjoint grew by this factor (0: never): rays that
+    # wander inside an object have exponentially growing, useless gradients
+    adjoint_growth_max: float = 30.0
+    # backward pass: "continuous" (adjoint-state ODE, gradient up to the integrator's error)
+    # or "discrete" (each step reversed exactly from the checkpoints above: the renderer's
+    # own gradient, for about twice the field evaluations and K more states per ray)
+    adjoint: str = "continuous"
+    # empty-space skipping in the forward and backward passes: rays fly straight through
+    # cells where eta cannot vary before the occupancy (occupancy_res^3 over the box) is
+    # rebuilt from the parameters, every occupancy_every iterations (clrefract/fit_occupancy.py: a
+    # level set's band plus its drift, a voxel grid's free nodes). A hash grid's own rays
+    # cannot skip; from the hull with the line search, the level set it follows (its start
+    # search and its steps) does, by default (kinds.HashGridKind.defaults)
+    skip_empty: bool = False
+    occupancy_every: int = 25
+    occupancy_res: int = 32
+    precision: str = "float32"
+    loss: str = "srgb"
+    queues: int = 1
+    lanes: int = 0  # 0: device default
+    device: str = ""  # under MPI: a comma-separated list is indexed by local rank
+    # under MPI, each batch is cut into this many pieces (a power of two) that are summed in
+    # one fixed order: any number of ranks up to it gives the same gradient (parallel.py)
+    chunks: int = 16
+    seed: int = 0
+    checkpoint_every: int = 50
+    # loss on a fixed batch of training rays every this many iterations (0: never); the run
+    # keeps the parameters that scored best there (at the final grid resolution)
+    validate_every: int = 25
+    # stop once this many validated steps in a row found no better held-out loss (0: run
+    # every iteration); a line search's default is LINE_SEARCH_PATIENCE
+    patience: int = 0
+    # training views held out of the gradient for that validation (every k-th view; 0, or
+    # fewer than five training views each: validate on training rays): what generalises to
+    # new views, not what fits the training rays best
+    val_views: int = 8
+    # the run stops, keeping its best parameters, once the held-out loss exceeds its best by
+    # this factor (0: never): a learning rate 2000x the default took a voxel fit's to 6.5x
+    # within 5 iterations, and healthy fits stay near their best
+    diverge_factor: float = 5.0
+    test_views: int = -1  # test views rendered at the end (-1: all)
+    # the object's box in mm, xmin, ymin, zmin, xmax, ymax, zmax (--box); (): the dataset's
+    box: tuple = ()
+
+    def validate(self) -> None:
+        """The checks every field kind shares (the kind's own: kinds.py)."""
+        if self.box:
+            self.box = tuple(box_values(self.box, "box"))
+        check_count("batch", self.batch, 1, 2**26)
+        check_memory(f"batch {self.batch}", self.batch * FIT_BYTES_PER_RAY * 4)
+        check_count("iterations", self.iterations, 1, INT32_MAX)
+        check_count("queues", self.queues, 1, 64)
+        check_count("patience", self.patience, 0, INT32_MAX)
+        for name in ("res", "n_max"):
+            if getattr(self, name) < 0:
+                raise ClrefractError(
+                    f"{name} must be at least 1 (or 0: from the photographs), "
+                    f"got {getattr(self, name)}"
+                )
+        if not (self.step >= 0 and math.isfinite(self.step)):
+            raise ClrefractError(f"step must be positive (or 0: automatic), got {self.step}")
+        if not (self.width > 0 and math.isfinite(self.width)):
+            raise ClrefractError(f"width must be positive, got {self.width}")
+        if not (self.diverge_factor == 0 or 1 < self.diverge_factor < math.inf):
+            raise ClrefractError(
+                f"diverge_factor must be above 1 (or 0: never), got {self.diverge_factor}"
+            )
+        if not (0 <= self.index_headroom < 10):
+            raise ClrefractError(f"index_headroom must be in [0, 10), got {self.index_headroom}")
+        if not 0 <= self.hull_tolerance < 0.5:
+            raise ClrefractError(
+                "hull_tolerance must be in [0, 0.5) (a share of the views), "
+                f"got {self.hull_tolerance}"
+            )
+        if not 0 <= self.hull_carve <= 1:
+            raise ClrefractError(
+                f"hull_carve must be in [0, 1] (a share of the hull; 0 keeps every view), "
+                f"got {self.hull_carve}"
+            )
+        if not 0 < self.mask_threshold < 1:
+            raise ClrefractError(
+                f"mask_threshold must be in (0, 1) (an sRGB difference), got {self.mask_threshold}"
+            )
+        if self.free_cells < -1:
+            raise ClrefractError(
+                f"free_cells must be at least 0 (or -1: everywhere), got {self.free_cells}"
+            )
+        if self.output not in ("", "ramp", "sigmoid"):
+            raise ClrefractError(f"output must be 'ramp' or 'sigmoid', got {self.output!r}")
+        if self.init not in ("hull", "empty"):
+            raise ClrefractError(f"init must be 'hull' or 'empty', got {self.init!r}")
+        if self.adjoint not in ADJOINTS:
+            raise ClrefractError(
+                f"adjoint must be one of {', '.join(ADJOINTS)}, got {self.adjoint!r}"
+            )
+        if self.backward_checkpoints < 0:
+            raise ClrefractError(
+                f"backward_checkpoints must be >= 0, got {self.backward_checkpoints}"
+            )
+        if self.skip_empty:
+            if self.adjoint == "discrete":
+                raise ClrefractError(
+                    "skip_empty needs adjoint = 'continuous': the discrete adjoint replays "
+                    "every step"
+                )
+            if not 1 <= self.occupancy_res <= 1024:
+                raise ClrefractError(f"occupancy_res must be 1 to 1024, got {self.occupancy_res}")
+            if self.occupancy_every < 1:
+                raise ClrefractError(
+                    f"occupancy_every must be at least 1, got {self.occupancy_every}"
+                )
+        if self.optimizer not in OPTIMIZERS:
+            raise ClrefractError(
+                f"optimizer must be 'adam' or 'line-search', got {self.optimizer!r}"
+            )
+        if self.distil_on not in ("device", "host"):
+            raise ClrefractError(f"distil_on must be 'device' or 'host', got {self.distil_on!r}")
+        if self.interp not in ("smoothstep", "trilinear", "bspline"):
+            raise ClrefractError(
+                f"interp must be 'bspline', 'smoothstep' or 'trilinear', got {self.interp!r}"
+            )
+
+
+ADJOINTS = ("continuous", "discrete")
+OPTIMIZERS = ("adam", "line-search")
+KNOWN = {f.name: f for f in fields(FitConfig)}
+
+
+def to_toml(cfg: FitConfig) -> str:
+    """config.toml's text: every key, read back by `read_toml` to the same values."""
+    return tomli_w.dumps(
+        {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg).items()}
+    )
+
+
+def read_toml(path: Path) -> dict:
+    """The keys of a TOML file, as read (one line naming the file where it cannot be)."""
+    try:
+        return tomllib.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise ClrefractError(f"{path}: config file not found") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ClrefractError(f"{path}: not valid TOML ({exc})") from None
+
+
+def coerced(items: dict) -> FitConfig:
+    """A FitConfig of these keys, each turned into its default's type (unknown keys, and
+    values of another kind, refused in one line)."""
+    cfg = FitConfig()
+    for k, v in items.items():
+        if k not in KNOWN:
+            raise ClrefractError(f"unknown config key {k!r} (known: {', '.join(KNOWN)})")
+        setattr(cfg, k, _as_type_of(getattr(cfg, k), k, v))
+    return cfg
+
+
+def _as_type_of(default, key: str, v):
+    bad = ClrefractError(f"config key {key!r}: cannot use {v!r}")
+    if isinstance(default, bool):
+        # bool("false") is True: a string says which it means
+        words = {"true": True, "false": False}
+        if isinstance(v, str) and v.lower() in words:
+            return words[v.lower()]
+        if isinstance(v, bool | int) and v in (0, 1):
+            return bool(v)
+        raise bad
+    try:
+        if isinstance(default, tuple):  # a string or a number is one value, not letters
+            return (v,) if isinstance(v, str | int | float) else tuple(v)
+        v = type(default)(v)
+    except (TypeError, ValueError):
+        raise bad from None
+    if isinstance(v, float) and math.isnan(v):
+        raise bad
+    return v

@@ -1,0 +1,350 @@
+"""One adapter per field kind: what a fit does differently for a voxel grid, a level set and
+a hash grid. The rest of the fit asks its adapter (`kind_of(cfg)`) and never the kind's
+name, as the tracer asks a field for its kernel sources.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..errors import ClrefractError
+from ..limits import check_grid, check_table
+from .config import FitConfig
+
+# a line-search step costs tens of seconds (a hash grid's refit included), and the quick
+# sphere's held-out loss still fell at step 15 of 16
+LINE_SEARCH_ITERATIONS = 16
+# with the grid fitted to the best step alone (refit = "best"), a step takes half the time
+# it took with a refit after each: 32 steps cost what 16 did, and the quick sphere's
+# held-out loss fell up to step 30
+HASHGRID_LINE_SEARCH_ITERATIONS = 32
+# in 16 runs of 32 line-search steps (sphere, drop, prism, cylinder, random solid) a better
+# held-out loss came at most 13 steps after the one before; the prism's last at step 3 to 8
+LINE_SEARCH_PATIENCE = 16
+# what a hash grid from the hull fits with unless told otherwise. Adam on its tables and MLP
+# added nothing; the line search on its level set, at a 0.5 mm interface (the true sphere
+# on it renders 34.6 dB against 31.6 at 1 mm) and 32,768 rays a step, took the quick
+# protocol's sphere from 31.69 to 33.65 dB in 12 steps and 34.32 in 20 (best step 18)
+HASHGRID_HULL_DEFAULTS = dict(width=0.5, optimizer="line-search", line_batch=32768)
+
+
+def interface_step_scale(index: float) -> float:
+    """Factor on the default tracer step across a surface of glass up to this index: 1 up
+    to 1.5, below in proportion to the index contrast above it, so that a ray bends as much
+    per step (at 1.9 a quarter of a 1 mm interface made the truth's loss lowest at index
+    1.8, an eighth at 1.9)."""
+    return min(1.0, 0.5 / max(index - 1.0, 1e-6))
+
+
+def voxel_step(box, res: int) -> float:
+    """A voxel fit's default step: half a cell of its final grid. The truth sampled on the
+    grid (luneburg, plume, sphere; 16^3 to 128^3 over 100 mm) renders the test views within
+    0.04 dB of a quarter cell's PSNR at half a cell; 1 mm loses 0.33 to 0.44 dB on the
+    sphere at 96^3 and 128^3 and a whole cell up to 0.25 dB, while at 16^3 and 32^3 half a
+    cell takes 0.3 to 0.6 times 1 mm's steps."""
+    return 0.5 * float(np.min(box.size)) / (res - 1)
+
+
+class FieldKind:
+    """The defaults, checks, field, step and strategies of one kind of fitted field."""
+
+    name = ""
+    grid = False  # a node grid of `res` per axis
+    interface = False  # a surface, whose step shrinks for glass of a high index
+    optimizers = ("adam",)
+
+    # --- configuration ---------------------------------------------------------------------
+    def defaults(self, items: dict) -> None:
+        """Fill the keys a file or the flags left out with this kind's and its optimiser's
+        defaults (written into config.toml like any other value)."""
+        if items.get("optimizer") == "line-search":
+            items.setdefault("iterations", self.line_search_iterations)
+            # a step is a move that the held-out views must confirm: each one is validated
+            items.setdefault("validate_every", 1)
+            items.setdefault("patience", LINE_SEARCH_PATIENCE)
+
+    line_search_iterations = LINE_SEARCH_ITERATIONS
+
+    def validate(self, cfg: FitConfig) -> None:
+        if cfg.optimizer not in self.optimizers:
+            raise ClrefractError(self.optimizer_refusal)
+        if cfg.skip_empty and self.skipping_kind(cfg) is None:
+            raise ClrefractError(
+                "skip_empty cannot train a hash grid: its parameters change eta anywhere "
+                "(hashed table entries, the MLP); fit a voxel grid or level set, or set "
+                "skip_empty = false"
+            )
+
+    optimizer_refusal = ""
+
+    def step_mm(self, cfg: FitConfig) -> float:
+        """The tracer's step: the configured one, else this kind's default."""
+        return cfg.step if cfg.step > 0 else self.default_step(cfg)
+
+    def default_step(self, cfg: FitConfig) -> float:
+        return 1.0
+
+    def skipping_kind(self, cfg: FitConfig) -> str | None:
+        """The kind of field whose rays skip empty space with skip_empty (None: none may)."""
+        return self.name
+
+    def guided(self, cfg: FitConfig) -> bool:
+        """Whether the fit's steps move a level set that this field is fitted to."""
+        return False
+
+    def object_box(self, cfg: FitConfig) -> bool:
+        """Whether the field lives in the box around the visual hull (not the dataset's)."""
+        return False
+
+    def start(self, cfg: FitConfig) -> str:
+        """The name of the start strategy (starts.py)."""
+        return "empty"
+
+    # --- the field --------------------------------------------------------------------------
+    def make(self, cfg: FitConfig, box, eta_max: float, res: int):
+        """A fresh field of this kind (eta = 1 everywhere)."""
+        raise NotImplementedError
+
+    def resolution(self, field) -> int:
+        """The grid's nodes per axis (0: no grid), as checkpoint.npz's `shape` holds it."""
+        return int(field.values.shape[0]) if self.grid else 0
+
+    def eta_top(self, cfg: FitConfig, index: float) -> float:
+        """The field's eta_max for glass of this index."""
+        return index
+
+    def with_top(self, field, eta_max: float) -> None:
+        """The field's upper bound moved to eta_max (a hash grid follows its guide's index)."""
+
+    def project(self, cfg: FitConfig, params, eta_max: float, free) -> None:
+        """Keep parameters physical after an optimiser's step."""
+
+    def extra_gradient(self, cfg: FitConfig, params):
+        """Gradient of this kind's own penalties (0: none)."""
+        return 0.0
+
+    def frees_near_hull(self, cfg: FitConfig) -> bool:
+        """Whether only parameters near the visual hull may move (`free_nodes`)."""
+        return False
+
+    def free_nodes(self, cfg: FitConfig, hull) -> np.ndarray | None:
+        """Parameters that may move, of a field on the hull's grid (None: all)."""
+        return None
+
+    # a field whose size (res = 0) and step are resolved before the start: its box is the
+    # dataset's, not the hull's
+    sized_early = False
+
+    def early_step(self, box, res: int) -> float:
+        return 0.0
+
+    def resolution_at(self, cfg: FitConfig, it: int) -> int:
+        """The grid resolution at an iteration (coarse to fine where the kind has one)."""
+        return cfg.res
+
+
+class VoxelKind(FieldKind):
+    name = "voxel"
+    grid = True
+    optimizer_refusal = (
+        "optimizer 'line-search' moves a surface (a level set's, or the one a hash grid "
+        "is distilled from); field 'voxel' uses optimizer 'adam'"
+    )
+
+    def validate(self, cfg):
+        super().validate(cfg)
+        if cfg.res:  # 0: sized from the photographs
+            check_grid("res", cfg.res)
+
+    def start(self, cfg):
+        return "voxel-hull" if cfg.init == "hull" else "empty"
+
+    def make(self, cfg, box, eta_max, res):
+        from ..fields.voxel import VoxelGrid
+
+        return VoxelGrid(np.ones((res, res, res)), box, interp=cfg.interp, eta_max=eta_max)
+
+    def eta_top(self, cfg, index):
+        return index
+
+    def project(self, cfg, params, eta_max, free):
+        np.clip(params, 1.0, eta_max, out=params)  # node values physical: 1 <= eta <= eta_max
+        if free is not None:
+            params[~free] = 1.0
+
+    def extra_gradient(self, cfg, params):
+        return cfg.sparsity * (params > 1.0) if cfg.sparsity else 0.0
+
+    def frees_near_hull(self, cfg):
+        return cfg.init == "hull" and cfg.free_cells >= 0
+
+    def free_nodes(self, cfg, hull):
+        return hull.dilated(cfg.free_cells).ravel() if hull.found else None
+
+    sized_early = True
+
+    def early_step(self, box, res):
+        return voxel_step(box, res)
+
+    def resolution_at(self, cfg, it):
+        """Coarse to fine: the schedule splits the first half of the iterations."""
+        sched = [r for r in cfg.res_schedule if r < cfg.res]
+        if not sched:
+            return cfg.res
+        span = cfg.iterations / 2 / len(sched)
+        k = int(it // span)
+        return sched[k] if k < len(sched) else cfg.res
+
+
+class LevelSetKind(FieldKind):
+    name = "levelset"
+    grid = True
+    interface = True
+    optimizers = ("adam", "line-search")
+
+    def validate(self, cfg):
+        super().validate(cfg)
+        if cfg.init != "hull":
+            raise ClrefractError("a level-set fit starts from the visual hull (init = 'hull')")
+        if cfg.res:
+            check_grid("res", cfg.res)
+
+    def default_step(self, cfg):
+        return cfg.width / 4
+
+    def object_box(self, cfg):
+        return True
+
+    def start(self, cfg):
+        return "levelset-hull"
+
+    def make(self, cfg, box, eta_max, res):
+        from ..fields.levelset import LevelSetField
+
+        far = np.full((res, res, res), 4.0 * cfg.width)  # no surface: air everywhere
+        return LevelSetField(far, box, eta=1.0, width=cfg.width, eta_max=eta_max)
+
+
+class HashGridKind(FieldKind):
+    name = "hashgrid"
+    interface = True
+    optimizers = ("adam", "line-search")
+    line_search_iterations = HASHGRID_LINE_SEARCH_ITERATIONS
+
+    def defaults(self, items):
+        if items.get("init", FitConfig.init) == "hull":
+            for k, v in HASHGRID_HULL_DEFAULTS.items():
+                items.setdefault(k, v)
+        super().defaults(items)
+        guided = items.get("init", FitConfig.init) == "hull"
+        if items.get("optimizer") == "line-search" and guided:
+            if items.get("adjoint") != "discrete":
+                # the level set it follows skips (the grid's own rays never do): exact in
+                # float64, and the quick drop's fit took 1,203 s instead of 1,497
+                items.setdefault("skip_empty", True)
+
+    def validate(self, cfg):
+        if cfg.optimizer == "line-search" and cfg.init != "hull":
+            raise ClrefractError(
+                "optimizer 'line-search' moves a hash grid's surface from the visual hull: "
+                "set init = 'hull'"
+            )
+        super().validate(cfg)
+        if cfg.output == "ramp" and cfg.init != "hull":
+            raise ClrefractError(
+                "a hash grid with the ramp output starts from the visual hull (init = 'hull'):"
+                " from empty space its output is flat and has no gradient"
+            )
+        check_table(cfg.levels, cfg.log2_table, cfg.features)
+        from ..limits import check_count
+
+        check_count("hidden", cfg.hidden, 1, 1024)
+
+    def output(self, cfg) -> str:
+        """ "ramp" from the hull (an interface), "sigmoid" from empty space, unless told."""
+        return cfg.output or ("ramp" if cfg.init == "hull" else "sigmoid")
+
+    def default_step(self, cfg):
+        # a quarter of the interface: at half, the truth fitted into a hash grid renders
+        # 5 dB worse (a 48 x 48 sphere, width 1 mm: 24.5 against 29.3 dB). A sigmoid hash
+        # grid's surface ramps over a quarter of the width (fit_surface): an eighth
+        return cfg.width / 4 if self.output(cfg) == "ramp" else cfg.width / 8
+
+    def skipping_kind(self, cfg):
+        return "levelset" if self.guided(cfg) else None
+
+    def guided(self, cfg):
+        return cfg.init == "hull" and cfg.optimizer == "line-search"
+
+    def object_box(self, cfg):
+        return cfg.init == "hull"
+
+    def start(self, cfg):
+        return "distilled" if cfg.init == "hull" else "empty"
+
+    def make(self, cfg, box, eta_max, res):
+        from ..fields.hashgrid import HashGridField
+
+        return HashGridField(hashgrid_config(cfg, eta_max), box, seed=cfg.seed)
+
+    def eta_top(self, cfg, index):
+        """A sigmoid's eta_max lies index_headroom above the index: the MLP's output is then
+        6 inside the glass, where the sigmoid is saturated and keeps eta flat (noise in grad
+        eta there bends every ray crossing it); a ramp's is the index itself."""
+        room = cfg.index_headroom if self.output(cfg) == "sigmoid" else 0.0
+        return 1 + (index - 1) * (1 + room)
+
+    def with_top(self, field, eta_max):
+        if eta_max != field.config.eta_max:
+            field.config = replace(field.config, eta_max=float(eta_max))
+
+
+KINDS = {k.name: k for k in (VoxelKind(), LevelSetKind(), HashGridKind())}
+
+
+def kind_named(name: str) -> FieldKind:
+    try:
+        return KINDS[name]
+    except KeyError:
+        raise ClrefractError(f"field must be one of {', '.join(KINDS)}, got {name!r}") from None
+
+
+def kind_of(cfg: FitConfig) -> FieldKind:
+    return kind_named(cfg.field)
+
+
+def make_field(cfg: FitConfig, box, eta_max: float, res: int):
+    """A fresh field of the configured kind (eta = 1 everywhere)."""
+    return kind_of(cfg).make(cfg, box, eta_max, res)
+
+
+def hashgrid_config(cfg: FitConfig, eta_max: float = 1.6):
+    """The hash grid a fit configuration describes."""
+    from ..fields.hashgrid import HashGridConfig
+
+    return HashGridConfig(
+        levels=cfg.levels,
+        features=cfg.features,
+        log2_table=cfg.log2_table,
+        n_min=cfg.n_min,
+        n_max=cfg.n_max,
+        hidden=cfg.hidden,
+        layers=cfg.layers,
+        eta_max=eta_max,
+        output=HashGridKind().output(cfg),
+    )
+
+
+def step_mm(cfg: FitConfig) -> float:
+    """The tracer step a run of this configuration traces (and is scored) with."""
+    return kind_of(cfg).step_mm(cfg)
+
+
+def guide_config(cfg: FitConfig, index: float) -> FitConfig:
+    """The level set a hash grid starts from and its line search follows: the fit's
+    settings with a level set's own step at this glass index."""
+    guide = replace(cfg, field="levelset", step=0.0)
+    guide.step = KINDS["levelset"].step_mm(guide) * interface_step_scale(index)
+    return guide

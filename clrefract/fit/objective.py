@@ -1,0 +1,60 @@
+"""The photometric objective: the loss of training rays, with its adjoint gradient, and the
+held-out loss that picks the field a run keeps."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .rays import Tag, TrainingRays
+
+
+class Objective:
+    """Losses of a field's rays against the training pixels (`cfg.loss`'s colour space)."""
+
+    def __init__(self, rays: TrainingRays, loss_space: str, batch: int, seed: int):
+        self.rays, self.space = rays, loss_space
+        self.batch, self.seed = batch, seed
+        self._held_idx = None
+
+    def render(self, tracer, idx: np.ndarray) -> tuple[float, np.ndarray]:
+        """The loss of rays idx against the sharp environment (forward pass only), and each
+        ray's radiance (linear RGB, black where trapped)."""
+        from ..gradient import traced_loss
+
+        r = self.rays
+        t = tracer.trace(r.origins[idx], r.dirs[idx])
+        loss, _, radiance = traced_loss(
+            r.env, t.status, t.direction, r.rgb[idx], r.weights[idx], self.space
+        )
+        return loss, radiance
+
+    def loss(self, tracer, idx: np.ndarray) -> float:
+        return self.render(tracer, idx)[0]
+
+    def loss_and_grad(self, engine, idx: np.ndarray, it: int | None = None, group: int = 1):
+        """The loss and adjoint gradient of rays idx; against the images and environment
+        blurred as at iteration `it` (None: sharp)."""
+        r = self.rays
+        env, targets = r.blurred(it) if it is not None else (r.env, r.rgb)
+        return engine.loss_and_grad(
+            r.origins[idx], r.dirs[idx], targets[idx], env, r.weights[idx], group
+        )
+
+    def held_out_idx(self) -> np.ndarray:
+        """A fixed batch of the held-out views' rays, most through their masks (elsewhere
+        every field near the hull renders alike); training rays without held-out views."""
+        r = self.rays
+        if len(r.held) == 0:
+            return r.fixed_batch(Tag.VALIDATION)
+        if self._held_idx is None:
+            rng = np.random.default_rng([self.seed, *Tag.VALIDATION])
+            marked = np.intersect1d(r.marked(), r.held, assume_unique=True)
+            size = min(self.batch, len(r.held))
+            k = min(len(marked), size * 3 // 4)
+            self._held_idx = np.concatenate(
+                [rng.choice(marked, k, replace=False), rng.choice(r.held, size - k)]
+            )
+        return self._held_idx
+
+    def held_out_loss(self, tracer) -> float:
+        return self.loss(tracer, self.held_out_idx())

@@ -1,0 +1,121 @@
+"""A run folder from the command line's point of view: start a run in a new folder, resume
+one, give a line search more steps, read a run's field at its latest checkpoint."""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from .. import start_losses
+from ..errors import ClrefractError
+from ..imageio import ensure_out_dir
+from .config import FitConfig
+from .kinds import make_field
+from .runfolder import START_FILES, RunFolder
+from .trainer import Fit
+
+
+def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, stream=None) -> Fit:
+    """A run ready to go: a new run folder with its field at the start, or a resumed one."""
+    folder = RunFolder(out)
+    if resume:
+        if not folder.has_config():
+            if start_losses.count(folder.path):
+                raise ClrefractError(
+                    f"{out}: its start was interrupted before the run began; the same "
+                    "command without --resume takes up the losses its search kept"
+                )
+            raise ClrefractError(f"{out}: no run to resume (config.toml missing)")
+        cfg = folder.config()
+        ensure_out_dir(folder.path, "run folder")
+        fit = Fit(dataset, out, cfg, stream=stream, folder=folder)
+        fit.load_checkpoint()
+        folder.truncate_metrics(fit.it)
+        return fit
+    if folder.holds_run():
+        raise ClrefractError(
+            f"{out} already holds a run: use --resume to continue it, or another --out"
+        )
+    fresh_folder = not folder.path.exists()
+    ensure_out_dir(folder.path, "run folder")
+    had = {name for name in START_FILES if (folder / name).exists()}
+    try:
+        return start_run(dataset, folder, cfg, stream)
+    except BaseException:
+        # a start that failed (or was interrupted) leaves no run behind, only its search's
+        # losses, which the same command run again takes up
+        for name in START_FILES:
+            if name not in had:
+                (folder / name).unlink(missing_ok=True)
+        kept = start_losses.count(folder.path)
+        if kept:
+            (stream or sys.stderr).write(
+                f"start: {kept} losses of its search kept in {folder / start_losses.NAME}; "
+                "the same command takes them up\n"
+            )
+        if fresh_folder and not any(folder.path.iterdir()):
+            folder.path.rmdir()
+        raise
+
+
+def start_run(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> Fit:
+    from ..report import write_start_report
+
+    fit = Fit(dataset, folder.path, cfg, stream=stream, folder=folder)
+    folder.write_config(cfg)
+    folder.write_text("metrics.jsonl", "")
+    t0 = time.perf_counter()
+    fit.start()
+    folder.write_config(fit.cfg)  # with what the start resolved
+    write_start_report(fit, time.perf_counter() - t0)
+    folder.write_meta(  # the field's box: a level set's is the object's
+        {
+            "dataset": str(Path(dataset).resolve()),
+            "box": fit.box.to_dict(),
+            "eta_max": fit.eta_max,
+        }
+    )
+    fit.save_checkpoint()  # a run killed before its first step resumes from its start
+    return fit
+
+
+def extend_run(out: Path, iterations: int) -> None:
+    """Give a line-search run more steps before it is resumed: its config.toml is the
+    record of what it runs. Adam's rates decay over the run's whole length, so its length
+    stays."""
+    folder = RunFolder(out)
+    cfg = folder.config()
+    if iterations == cfg.iterations:
+        return
+    if cfg.optimizer != "line-search":
+        raise ClrefractError(
+            f"{out}: --resume --iterations {iterations}: an Adam run's rates decay over its "
+            f"{cfg.iterations} iterations; start a new run to train longer"
+        )
+    if iterations < cfg.iterations:
+        raise ClrefractError(
+            f"{out}: --resume --iterations {iterations}: the run has {cfg.iterations} steps, "
+            "and --resume can only add steps"
+        )
+    folder.write_config(replace(cfg, iterations=iterations))
+
+
+def field_from_run(run: Path):
+    """The field of a run folder at its latest checkpoint (for rendering a run in progress):
+    a hash grid's level set where the grid is fitted to it only at the end (refit = "best")."""
+    folder = RunFolder(run)
+    cfg = folder.config()
+    try:
+        ckpt = folder.checkpoint()
+        box, top = folder.box_and_top()
+    except ClrefractError as exc:
+        raise ClrefractError(f"{run}: cannot read the run's checkpoint ({exc})") from None
+    params, res, top = ckpt.params, ckpt.resolution, ckpt.eta_max or top
+    if ckpt.guide and cfg.refit == "best":
+        cfg, params = replace(cfg, field="levelset"), ckpt.guide["guide_params"]
+        top, res = float(ckpt.guide["guide_eta_max"]), int(ckpt.guide["guide_res"])
+    field = make_field(cfg, box, top, res)
+    field.set_data(params)
+    return field

@@ -1,0 +1,231 @@
+"""`Fit`: one fitting run's state on one dataset, in one run folder. Its parts decide: the
+field kind's adapter (kinds.py), the training rays and objective, the start (starts.py),
+the optimiser (optimizers.py) and the finish (finishes.py); the loop is loop.py's."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from ..dataset import Dataset, box_of
+from .binding import Bound, engine_for, forward_settings
+from .config import FitConfig
+from .kinds import interface_step_scale, kind_of
+from .loop import train
+from .objective import Objective
+from .optimizers import optimizer_for
+from .rays import TrainingRays
+from .runfolder import Best, Checkpoint, RunFolder
+from .starts import STARTS, Hulls
+
+
+class Fit:
+    """One fitting run on one dataset, in one run folder."""
+
+    def __init__(self, dataset, out, cfg: FitConfig, stream=None, folder: RunFolder = None):
+        from ..parallel import device_for
+        from ..runtime import Runtime
+
+        self.ds = Dataset(dataset, box=box_of(cfg.box) if cfg.box else None)
+        self.out = folder or RunFolder(out)
+        self.cfg, self.kind = cfg, kind_of(cfg)
+        self.stream = stream or sys.stderr
+        self.runtime = Runtime(device_for(cfg.device), queues=cfg.queues)
+        self.box = self.ds.box
+        if self.kind.sized_early:
+            self.size_from_images()
+            if cfg.step == 0:
+                cfg.step = self.kind.early_step(self.box, cfg.res)  # recorded in config.toml
+        self.eta_max = cfg.eta_max or self.ds.scene.eta_range[1] * 1.05
+        self.rays = TrainingRays(self.ds, cfg)
+        self.objective = Objective(self.rays, cfg.loss, cfg.batch, cfg.seed)
+        self.hulls = Hulls(self.ds, cfg, self.rays)
+        self.it = 0
+        self.init_info: dict = {}
+        self.best = Best()
+        self.bound: Bound | None = None
+        self.optimizer = None
+        self.record: dict = {}  # what results.json reports beside the scores
+        self.occupancy = None
+        if cfg.skip_empty:
+            from ..fit_occupancy import TrainingOccupancy
+
+            kind = self.kind.skipping_kind(cfg)
+            self.occupancy = TrainingOccupancy(
+                kind, cfg.occupancy_res, cfg.occupancy_every, cfg.lr_phi
+            )
+
+    # --- the bound field ----------------------------------------------------------------------
+    @property
+    def field(self):
+        return self.bound.field
+
+    @property
+    def params(self) -> np.ndarray:
+        return self.bound.params
+
+    @property
+    def engine(self):
+        return self.bound.engine
+
+    def make_field(self, res: int):
+        return self.kind.make(self.cfg, self.box, self.eta_max, res)
+
+    def bound_for(self, field, step: float = 0.0) -> Bound:
+        """`field` with an engine of the fit's settings (`step` in place of its own) and,
+        where its rays skip, the fit's occupancy."""
+        engine = engine_for(field, self.box, self.cfg, self.runtime, step)
+        skips = self.occupancy if engine.tracer.skip_empty else None
+        free = None
+        if self.kind.frees_near_hull(self.cfg):
+            hull = self.hulls.at(self.box, self.kind.resolution(field))
+            free = self.kind.free_nodes(self.cfg, hull)
+        bound = Bound(field, engine, skips, free)
+        bound.upload(self.it)
+        return bound
+
+    def bind(self, field, step: float = 0.0) -> None:
+        """Train `field` from here on."""
+        self.bound = self.bound_for(field, step)
+
+    def adopt(self, field, cfg: FitConfig) -> None:
+        """Finish with another field and the settings it was fitted with (a narrowed run's
+        earlier width)."""
+        self.cfg = cfg
+        self.bind(field)
+
+    def groups(self):
+        """The field's parameter groups with the configured rates (Adam's)."""
+        c = self.cfg
+        return self.field.param_groups(
+            lr=c.lr, lr_table=c.lr_table, lr_mlp=c.lr_mlp, lr_phi=c.lr_phi, lr_index=c.lr_index
+        )
+
+    def set_eta_max(self, eta_max: float) -> None:
+        """A new top index (a hash grid's follows its guide's index), uploaded with the
+        parameters; a level set's and a voxel grid's bound stays."""
+        self.eta_max = float(eta_max)
+        self.bound.with_top(self.cfg, self.eta_max, self.it)
+
+    def use_best(self) -> None:
+        """Load the parameters that scored best on the held-out views."""
+        best = self.best
+        if best.params is not None and len(best.params) == len(self.params):
+            self.params[:] = best.params
+            self.field.set_data(self.params)
+            self.set_eta_max(best.eta_max or self.eta_max)
+
+    def distil_device(self):
+        """Where a hash grid is fitted to another field (`distil_on`): fit_to_field's
+        `device`."""
+        return (self.runtime, self.cfg.precision) if self.cfg.distil_on == "device" else None
+
+    def forward_tracer(self, field, cfg: FitConfig | None = None, interface_steps: bool = True):
+        """A forward tracer of `field` as a run of `cfg` (the fit's) traces it."""
+        from ..render import run_tracer
+
+        settings = forward_settings(cfg or self.cfg, interface_steps)
+        return run_tracer(field, self.box, settings, self.runtime)
+
+    def run(self) -> dict:
+        """Train to the end (loop.py); the results."""
+        return train(self)
+
+    # --- the start ----------------------------------------------------------------------------
+    def size_from_images(self) -> None:
+        """Resolve res = 0 / n_max = 0 for the current box: one cell per pixel footprint."""
+        from ..limits import check_grid
+        from ..resolution import cells_for, pixel_footprint_mm
+
+        auto = [n for n in ("res", "n_max") if getattr(self.cfg, n) == 0]
+        if not auto:
+            return
+        foot = pixel_footprint_mm(self.ds.train, np.add(self.box.lo, self.box.hi) / 2)
+        cells = cells_for(float(np.max(self.box.size)), foot)
+        for name in auto:
+            setattr(self.cfg, name, cells)
+        if self.kind.grid:
+            check_grid("res", self.cfg.res)
+        self.stream.write(
+            f"field: {cells} cells across the {np.max(self.box.size):.0f} mm box, one per "
+            f"pixel footprint at the object ({foot:.2f} mm)\n"
+        )
+
+    def start_grid(self) -> int:
+        """The tracing step, box and grid resolution of the start, before any field is made
+        (the resolution returned)."""
+        cfg = self.cfg
+        if self.kind.interface and cfg.step == 0:
+            scale = interface_step_scale(self.ds.scene.eta_range[1])
+            if scale < 1:  # recorded in config.toml, which render, eval and resume read
+                cfg.step = self.kind.step_mm(cfg) * scale
+        if self.kind.object_box(cfg):
+            self.box = self.hulls.object_box()
+        self.size_from_images()
+        return self.kind.resolution_at(cfg, 0)
+
+    def start(self) -> None:
+        res = self.start_grid()
+        guide = STARTS[self.kind.start(self.cfg)]().run(self, res)
+        self.optimizer = optimizer_for(self, guide)
+
+    # --- validation ---------------------------------------------------------------------------
+    def validation_loss(self) -> float:
+        """The held-out loss of the field the optimiser has the held-out views judge."""
+        return self.optimizer.validation_loss(self)
+
+    def held_out_loss(self, tracer=None) -> float:
+        """The held-out loss of the fit's own field, traced by its engine or `tracer`."""
+        return self.objective.held_out_loss(tracer or self.bound.tracer)
+
+    def track_best(self) -> float | None:
+        """The held-out loss where validation is due (None elsewhere); the best kept."""
+        every = self.cfg.validate_every
+        if every <= 0 or (self.it % every and self.it != self.cfg.iterations):
+            return None
+        if self.kind.grid and self.kind.resolution(self.field) != self.cfg.res:
+            return None  # earlier grids are not candidates
+        loss = self.validation_loss()
+        if loss < self.best.loss:
+            judged = self.optimizer.judged(self)
+            self.best = Best(loss, self.it, judged.params.copy(), self.eta_max)
+        return loss
+
+    # --- checkpoints --------------------------------------------------------------------------
+    def save_checkpoint(self) -> None:
+        self.out.save_checkpoint(
+            Checkpoint(
+                params=self.params,
+                iteration=self.it,
+                resolution=self.kind.resolution(self.field),
+                best=self.best,
+                adam=self.optimizer.state(),
+                eta_max=self.eta_max,
+            )
+        )
+
+    def load_checkpoint(self) -> None:
+        ckpt = self.out.checkpoint()
+        self.box, eta_max = self.out.box_and_top()
+        self.eta_max = float(ckpt.eta_max or eta_max or self.eta_max)
+        # bound (and its occupancy built) as at iteration 0: its rebuilds then fall where an
+        # uninterrupted run's did
+        self.bind(self.make_field(ckpt.resolution))
+        if len(ckpt.params) != len(self.params):
+            raise_mismatch(self.out.checkpoint_path, len(ckpt.params), len(self.params))
+        self.params[:] = ckpt.params
+        self.field.set_data(self.params)
+        self.bound.upload(self.it)
+        self.it = ckpt.iteration
+        self.best = ckpt.best
+        self.optimizer = optimizer_for(self, ckpt)
+        self.optimizer.restore(self, ckpt)
+
+
+def raise_mismatch(path, saved: int, configured: int):
+    from ..errors import ClrefractError
+
+    raise ClrefractError(
+        f"{path}: checkpoint has {saved} parameters, the configured field has {configured}"
+    )

@@ -1,0 +1,92 @@
+"""The source tree's shape, read from its syntax trees: clrefract's modules import one another
+without cycles, and no module reaches into another's private names. Imports inside functions
+count as much as those at the top of a file."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def module_name(path: Path) -> str:
+    """clrefract/fields/base.py -> clrefract.fields.base; a package's __init__.py -> the package."""
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def sources(*folders: str) -> dict[str, Path]:
+    """Module name -> file, for every .py under the folders."""
+    return {module_name(p): p for f in folders for p in sorted((ROOT / f).rglob("*.py"))}
+
+
+def imports(path: Path, modules: set[str]):
+    """(line, module imported from, name or None) for each import in the file, relative ones
+    resolved; `from .x import y` names module x.y where y is a submodule, else x with name y."""
+    here = module_name(path).split(".")
+    package = here if path.name == "__init__.py" else here[:-1]
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield node.lineno, alias.name, None
+        elif isinstance(node, ast.ImportFrom):
+            base = package[: len(package) - node.level + 1] if node.level else []
+            base = ".".join(base + (node.module.split(".") if node.module else []))
+            for alias in node.names:
+                sub = f"{base}.{alias.name}"
+                if sub in modules:
+                    yield node.lineno, sub, None
+                else:
+                    yield node.lineno, base, alias.name
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module, each sorted."""
+
+    def reach(start: str) -> set[str]:
+        seen, todo = set(), [start]
+        while todo:
+            for m in graph[todo.pop()] - seen:
+                seen.add(m)
+                todo.append(m)
+        return seen
+
+    reachable = {m: reach(m) for m in graph}
+    parts = {tuple(sorted(n for n in reachable[m] if m in reachable[n])) for m in graph}
+    return sorted(list(p) for p in parts if len(p) > 1)
+
+
+def private(name: str) -> bool:
+    """A name with a leading underscore; dunders (`__version__`) are public."""
+    dunder = name.startswith("__") and name.endswith("__")
+    return name.startswith("_") and not dunder
+
+
+def test_no_import_cycles_in_the_package():
+    files = sources("clrefract")
+    graph, where = {m: set() for m in files}, {}
+    for m, path in files.items():
+        for line, target, _ in imports(path, set(files)):
+            if target in files and target != m:
+                graph[m].add(target)
+                where.setdefault((m, target), f"{path.relative_to(ROOT)}:{line}")
+    found = cycles(graph)
+    report = [
+        " <-> ".join(c)
+        + "".join(f"\n    {a} -> {b} ({where[a, b]})" for a in c for b in c if b in graph[a])
+        for c in found
+    ]
+    assert not found, "import cycles:\n" + "\n".join(report)
+
+
+def test_no_module_imports_another_modules_private_name():
+    files = sources("clrefract", "tools", "tests")
+    modules = set(files)
+    bad = [
+        f"{path.relative_to(ROOT)}:{line}: from {target} import {name}"
+        for path in files.values()
+        for line, target, name in imports(path, modules)
+        if name and private(name) and target.split(".")[0] == "clrefract"
+    ]
+    assert not bad, "private names imported from another module:\n" + "\n".join(bad)
