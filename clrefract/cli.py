@@ -9,6 +9,7 @@ import json
 import math
 import sys
 import time
+from dataclasses import fields
 from pathlib import Path
 
 from .errors import ClrefractError
@@ -271,41 +272,13 @@ def _cmd_dataset_check(args) -> int:
 
 
 def _cmd_fit(args) -> int:
-    from .fit import load_config, run_fit
+    from .fit import FitConfig, load_config, run_fit
 
+    # every FitConfig key is a flag (None: not given); argparse's lists as the config's tuples
     overrides = {
-        k: getattr(args, k)
-        for k in (
-            "field",
-            "res",
-            "interp",
-            "init",
-            "iterations",
-            "batch",
-            "lr",
-            "lr_table",
-            "lr_mlp",
-            "lr_phi",
-            "lr_index",
-            "optimizer",
-            "adjoint_growth_max",
-            "diverge_factor",
-            "patience",
-            "adjoint",
-            "skip_empty",
-            "occupancy_every",
-            "width",
-            "reg",
-            "step",
-            "queues",
-            "device",
-            "seed",
-            "precision",
-            "levels",
-            "log2_table",
-            "hidden",
-            "test_views",
-        )
+        f.name: tuple(v) if isinstance(v := getattr(args, f.name), list) else v
+        for f in fields(FitConfig)
+        if f.name != "box"
     }
     if args.box:
         from .dataset import box_values
@@ -433,6 +406,57 @@ def _add_box_option(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--box", nargs="+", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX", help=f"{what}")
 
 
+# FitConfig keys whose flag is spelled otherwise (the first name; the key's own also works)
+_FIT_FLAG_NAMES = {"adjoint_growth_max": ("--growth-max", "--adjoint-growth-max")}
+_FIT_METAVARS = {
+    "res_schedule": "RES",
+    "grad_sigma": "CELLS",
+    "line_steps": "MM",
+    "index_steps": "DETA",
+}
+
+
+def _fit_default(value) -> str:
+    """A FitConfig default as --help shows it."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, tuple):
+        return " ".join(str(v) for v in value) or "none"
+    return repr(value) if value == "" else str(value)
+
+
+def _add_fit_options(p: argparse.ArgumentParser) -> None:
+    """One flag per FitConfig key, its help text and values from fit/config.py (HELP,
+    CHOICES), default None: a flag not given leaves the --config file's value (or the
+    key's default, shown in --help; some depend on the field kind and optimiser)."""
+    from .fit.config import CHOICES, HELP, FitConfig
+
+    g = p.add_argument_group(
+        "fit settings", "the keys of a --config file (config.toml), which these flags override"
+    )
+    for f in fields(FitConfig):
+        text = HELP[f.name]
+        if "(default:" not in text:
+            text += f" (default: {_fit_default(f.default)})"
+        text = text.replace("%", "%%")
+        if f.name == "box":
+            _add_box_option(g, text)
+            continue
+        kw: dict = {"dest": f.name, "default": None, "help": text}
+        if isinstance(f.default, bool):
+            kw["action"] = argparse.BooleanOptionalAction
+        elif isinstance(f.default, tuple):
+            # an empty default may be set empty again: a flag with no values
+            kw["nargs"] = "*" if not f.default else "+"
+            kw["type"] = int if f.name == "res_schedule" else float
+            kw["metavar"] = _FIT_METAVARS.get(f.name)
+        else:
+            kw["type"] = type(f.default)
+        if f.name in CHOICES:
+            kw["choices"] = CHOICES[f.name]
+        g.add_argument(*_FIT_FLAG_NAMES.get(f.name, ("--" + f.name.replace("_", "-"),)), **kw)
+
+
 def _joined_box(argv: list[str]) -> list[str]:
     """'--box -5,-5,-5,5,5,5' as '--box=-5,...': argparse takes a value that starts with '-'
     and is not one number for an option."""
@@ -445,7 +469,9 @@ def _joined_box(argv: list[str]) -> list[str]:
     return out
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
+    """The command line; fit_flags=False leaves out `fit`'s FitConfig flags, whose import
+    (the fit package: about 1.5 s) only `fit` needs."""
     ap = argparse.ArgumentParser(prog="clrefract", description=__doc__)
     ap.add_argument(
         "--verbose", action="store_true", help="show OpenCL compiler warnings and build logs"
@@ -553,104 +579,17 @@ def build_parser() -> argparse.ArgumentParser:
     _add_box_option(p, "the object's box in mm, instead of scene.json's or the cameras'")
     p.set_defaults(func=_cmd_dataset_check)
 
-    p = sub.add_parser("fit", help="recover eta from a dataset")
+    p = sub.add_parser(
+        "fit",
+        help="recover eta from a dataset",
+        usage="%(prog)s DATASET --out OUT [--config CONFIG] [--resume] [fit settings]",
+    )
     p.add_argument("dataset", help="dataset folder (see `clrefract dataset make`)")
     p.add_argument("--out", required=True, help="run folder")
     p.add_argument("--config", help="TOML file of fit settings (flags override it)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
-    _add_box_option(p, "the object's box in mm, instead of scene.json's or the cameras'")
-    p.add_argument(
-        "--field",
-        choices=["levelset", "voxel", "hashgrid"],
-        help="voxel: eta on a grid (default; any medium); levelset: one index inside a sharp "
-        "surface (glass, water: the sharpest fits); hashgrid: hash grid + MLP",
-    )
-    p.add_argument(
-        "--res",
-        type=int,
-        help="grid resolution (voxel values or level set); 0: one cell per pixel at the object",
-    )
-    p.add_argument("--interp", choices=["bspline", "smoothstep", "trilinear"], help="voxel weights")
-    p.add_argument(
-        "--init", choices=["hull", "empty"], help="start from the visual hull or eta = 1"
-    )
-    p.add_argument("--levels", type=int, help="hash grid levels")
-    p.add_argument("--log2-table", type=int, help="hash table size, log2")
-    p.add_argument("--hidden", type=int, help="MLP width")
-    p.add_argument(
-        "--iterations",
-        type=int,
-        help="steps of the optimiser (Adam 600, line search 16, a hash grid's 32)",
-    )
-    p.add_argument("--batch", type=int, help="rays per iteration")
-    p.add_argument(
-        "--width",
-        type=float,
-        help="interface width, mm (1; a hash grid from the hull 0.5); with --resume, a "
-        "line-search run's new width, its size and index searched again there",
-    )
-    p.add_argument("--lr", type=float, help="learning rate of voxel values")
-    p.add_argument("--lr-phi", type=float, help="learning rate of the level set's distance, mm")
-    p.add_argument("--lr-index", type=float, help="learning rate of the level set's index")
-    p.add_argument(
-        "--optimizer",
-        choices=["adam", "line-search"],
-        help="adam (the default of voxel grids and level sets), or line-search (level sets, "
-        "and hash grids from the hull, whose default it is, through their level set: the "
-        "rays whose adjoint stays tame, a smoothed shape gradient and the best of a few "
-        "moves along it)",
-    )
-    p.add_argument(
-        "--growth-max",
-        dest="adjoint_growth_max",
-        type=float,
-        help="stop a ray's backward pass once its adjoint grew by this factor (0: never)",
-    )
-    p.add_argument(
-        "--diverge-factor",
-        type=float,
-        help="stop once the held-out loss exceeds its best by this factor, keeping the best "
-        "field (default 5; 0: never); a non-finite loss, gradient or parameter always stops",
-    )
-    p.add_argument(
-        "--patience",
-        type=int,
-        help="stop once this many validated steps in a row find no better held-out loss "
-        "(default: 16 for the line search, 0 otherwise; 0: run every iteration)",
-    )
-    p.add_argument(
-        "--adjoint",
-        choices=["continuous", "discrete"],
-        help="backward pass: adjoint-state ODE (default) or the exact discrete adjoint of "
-        "each step, replayed from checkpoints",
-    )
-    p.add_argument(
-        "--skip-empty",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="rays fly straight through cells where eta cannot vary, forward and backward "
-        "(level set, voxel, and a hash grid's level set from the hull, where it is on by "
-        "default; same gradient, less time where the object is small)",
-    )
-    p.add_argument(
-        "--occupancy-every",
-        type=int,
-        help="with --skip-empty: rebuild the occupancy every this many iterations (25)",
-    )
-    p.add_argument("--lr-table", type=float, help="learning rate of hash tables")
-    p.add_argument("--lr-mlp", type=float, help="learning rate of the MLP")
-    p.add_argument("--reg", type=float, help="smoothness regulariser weight")
-    p.add_argument(
-        "--step",
-        type=float,
-        help="integrator step, mm (default: width/4 for level sets and hash grids, finer "
-        "above index 1.5; half a cell of the final grid for voxel grids)",
-    )
-    p.add_argument("--queues", type=int, help="command queues the batch is split across")
-    p.add_argument("--precision", choices=["float32", "float64"])
-    p.add_argument("--device")
-    p.add_argument("--seed", type=int)
-    p.add_argument("--test-views", type=int, help="test views rendered at the end (-1 all)")
+    if fit_flags:
+        _add_fit_options(p)
     p.set_defaults(func=_cmd_fit)
 
     p = sub.add_parser("eval", help="score a run: PSNR, SSIM, chamfer distance, eta RMSE")
@@ -702,7 +641,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = _joined_box(list(sys.argv[1:] if argv is None else argv))
-    args = build_parser().parse_args(argv)
+    args = build_parser(fit_flags="fit" in argv).parse_args(argv)
     if args.verbose:
         from .runtime import set_verbose
 

@@ -131,7 +131,7 @@ class GradientEngine:
         occupancy = None
         if settings.skip_empty:
             # exact by default: a level set's band (eta is flat off it whatever phi does),
-            # else every cell; fits replace it by their rule (fit_occupancy.py)
+            # else every cell; fits replace it by their rule (fit/occupancy.py)
             from .occupancy import distance_of, exact_live_cells
 
             occupancy = distance_of(exact_live_cells(field, box, settings.occupancy_res))

@@ -128,17 +128,3 @@ def check_device_buffer(what: str, nbytes: float, info) -> None:
     total = int(getattr(info, "global_mem_bytes", 0) or 0)
     if total:
         check_memory(what, nbytes, total, place=f"device memory on {info.name}")
-
-
-def check_fit_config(cfg) -> None:
-    """The sizes of a fit's configuration (a FitConfig), before its field is made."""
-    check_count("batch", cfg.batch, 1, 2**26)
-    check_memory(f"batch {cfg.batch}", cfg.batch * FIT_BYTES_PER_RAY * 4)
-    check_count("iterations", cfg.iterations, 1, INT32_MAX)
-    check_count("queues", cfg.queues, 1, 64)
-    check_count("patience", cfg.patience, 0, INT32_MAX)
-    if cfg.field in ("voxel", "levelset") and cfg.res:  # 0: sized from the photographs
-        check_grid("res", cfg.res)
-    elif cfg.field == "hashgrid":
-        check_table(cfg.levels, cfg.log2_table, cfg.features)
-        check_count("hidden", cfg.hidden, 1, 1024)

@@ -133,6 +133,8 @@ def exact_live_cells(field, box: Box, res: int) -> np.ndarray:
     """Cells whose skipping leaves every parameter's gradient exact: a level set's band
     (off it eta is flat whatever the nodes do); for other fields every cell (a parameter
     changes eta where it is flat too)."""
-    if getattr(field, "kind", "") == "levelset":
+    from .fields.levelset import LevelSetField
+
+    if isinstance(field, LevelSetField):
         return live_cells_levelset(field, box, res, 0.0)
     return np.ones((res,) * 3, bool)

@@ -58,6 +58,7 @@ def main() -> None:
             )
     elif mode == "stop":
         import clrefract.fit as fitmod
+        from clrefract.errors import ClrefractError
 
         real_step, stop = fitmod.Fit.step, int(sys.argv[5])
 
@@ -71,7 +72,7 @@ def main() -> None:
         cfg = fitmod.load_config(Path(sys.argv[4]), {})
         try:
             fitmod.run_fit(dataset, Path(sys.argv[3]), cfg)
-        except fitmod.ClrefractError as exc:
+        except ClrefractError as exc:
             print(f"rank {ranks.rank}: {exc}")
 
 

@@ -115,11 +115,11 @@ def test_grid_baseline_is_a_trilinear_voxel_fit_whose_loss_falls(tiny, tmp_path)
     settings = dict(res=16, iterations=20, batch=4096, init="empty", lr=1e-3, validate_every=0)
     cfg = load_config(None, {**METHODS["grid"].fit, **settings, "test_views": 0})
     fit = prepare_fit(tiny, tmp_path / "grid", cfg)
-    idx = np.arange(0, len(fit.origins), 3)  # a fixed third of the training rays
-    before = fit._forward_loss(idx)
+    idx = np.arange(0, len(fit.rays.origins), 3)  # a fixed third of the training rays
+    before = fit.loss(idx)
     for _ in range(cfg.iterations):
         fit.step()
-    assert fit._forward_loss(idx) < 0.95 * before
+    assert fit.loss(idx) < 0.95 * before
 
 
 def test_density_surface_rule_finds_a_ball():

@@ -220,7 +220,7 @@ def test_user_masks_feed_the_start(rendered, tmp_path):
     masks[1] = other[..., 3] > 0
     (cap / "transforms_train.json").write_text(json.dumps(tj))
     fit = Fit(cap, tmp_path / "run", load_config(None, {"res": 8}))
-    got = fit._refraction_masks()
+    got = fit.rays.masks()
     assert all(np.array_equal(g, m) for g, m in zip(got, masks))
     iio.imwrite(cap / "masks" / "other.png", np.zeros((5, 5), np.uint8))
     with pytest.raises(ClrefractError, match="other.png: mask is 5x5"):
@@ -318,7 +318,7 @@ def test_alpha_is_the_mask_and_a_cut_away_background_is_refused(rendered, tmp_pa
     rgb, _ = read_photo_rgb(cap / "train" / "r_001.png")
     assert np.array_equal(d.image(first), rgb)  # RGB as stored, not premultiplied
     fit = Fit(cap, tmp_path / "run", load_config(None, {"res": 8}))
-    assert np.array_equal(fit._refraction_masks()[0], matte)
+    assert np.array_equal(fit.rays.masks()[0], matte)
     assert main(["dataset", "check", str(cap)]) == 0
     capsys.readouterr()
     # the background cut away: no environment to compare with, refused in one line

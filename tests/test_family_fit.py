@@ -116,20 +116,22 @@ def test_the_start_searches_shells_and_picks_one_where_the_loss_prefers_it(tmp_p
     of the traced one: it must pick a shell, of the bowl's index, and beat the whole hull."""
     import json
 
-    from clrefract.fit import Fit, load_config, prepare_fit
+    from clrefract.fit import load_config, prepare_fit
+    from clrefract.fit.objective import Objective
 
     data = tmp_path / "bowl"
     opts = MakeOptions(views=30, res=48, env_width=512, volume_res=32)
     make_dataset("bowl", data, opts, stream=open("/dev/null", "w"))
     truth = scene_truth(Dataset(data))
 
-    def oracle(self, idx):
-        pts = self.field.node_points()
-        inside, true = self.params[:-1] < 0, truth.sdf(pts)[0] < 0
+    def oracle(self, tracer, idx):
+        pts = tracer.field.node_points()
+        params = tracer.field.data()
+        inside, true = params[:-1] < 0, truth.sdf(pts)[0] < 0
         iou = (inside & true).sum() / max((inside | true).sum(), 1)
-        return float(1 - iou + abs(self.params[-1] - truth.eta))
+        return float(1 - iou + abs(params[-1] - truth.eta))
 
-    monkeypatch.setattr(Fit, "_forward_loss", oracle)
+    monkeypatch.setattr(Objective, "loss", oracle)
     cfg = load_config(None, dict(field="levelset", res=32, iterations=1, tighten_hull=False))
     prepare_fit(data, tmp_path / "run", cfg, stream=open("/dev/null", "w"))
     info = json.loads((tmp_path / "run" / "init.json").read_text())

@@ -9,7 +9,7 @@ import pytest
 from clrefract.cli import main
 from clrefract.errors import ClrefractError
 from clrefract.fields.analytic import Blobs
-from clrefract.fit import load_config, run_fit
+from clrefract.fit import load_config, run_fit, step_mm
 from clrefract.synth import MakeOptions, make_dataset
 
 
@@ -256,7 +256,7 @@ def test_voxel_step_defaults_to_half_a_cell_and_is_recorded(blob_dataset, tmp_pa
     fit = prepare_fit(blob_dataset, tmp_path / "a", _cfg(step=0.0, iterations=1))
     cell = float(np.min(fit.box.size)) / 11
     assert fit.engine.tracer.step == pytest.approx(cell / 2)
-    assert load_config(tmp_path / "a" / "config.toml", {}).step_mm == pytest.approx(cell / 2)
+    assert step_mm(load_config(tmp_path / "a" / "config.toml", {})) == pytest.approx(cell / 2)
     fit = prepare_fit(blob_dataset, tmp_path / "b", _cfg(step=1.5, iterations=1))
     assert fit.engine.tracer.step == 1.5
 
@@ -277,7 +277,7 @@ def test_res_zero_sizes_the_grid_from_the_pixel_footprint(blob_dataset, tmp_path
     assert fit.cfg.res == cells_for(100.0, foot) == 30
     assert fit.field.values.shape == (30, 30, 30)
     saved = load_config(tmp_path / "a" / "config.toml", {})
-    assert saved.res == 30 and saved.step_mm == pytest.approx(100.0 / 29 / 2)
+    assert saved.res == 30 and step_mm(saved) == pytest.approx(100.0 / 29 / 2)
     # twice the pixels across the same view: half the footprint
     assert cells_for(100.0, foot / 2) == 60
     assert cells_for(100.0, foot / 100) == 256  # capped: the memory of a CPU fit
@@ -289,14 +289,17 @@ def test_hash_grid_output_follows_the_start_and_sets_step_and_eta_max():
     """The ramp output (a level set's interface: steps of width/4, eta_max the index) for a
     start from the hull; the sigmoid (steps of width/8, eta_max with headroom) from empty
     space, where the ramp would have no gradient; a ramp asked of an empty start is refused."""
+    from clrefract.fit import hashgrid_config, kind_of, step_mm
+
     hull = load_config(None, dict(field="hashgrid", width=1.0))
-    assert hull.hashgrid_output == "ramp" and hull.step_mm == 0.25
-    assert hull.hashgrid_eta_max(1.5) == 1.5
+    assert hashgrid_config(hull).output == "ramp" and step_mm(hull) == 0.25
+    assert kind_of(hull).eta_top(hull, 1.5) == 1.5
     empty = load_config(None, dict(field="hashgrid", width=1.0, init="empty"))
-    assert empty.hashgrid_output == "sigmoid" and empty.step_mm == 0.125
-    assert empty.hashgrid_eta_max(1.5) == pytest.approx(1.5 + 0.5 * empty.index_headroom)
+    assert hashgrid_config(empty).output == "sigmoid" and step_mm(empty) == 0.125
+    top = kind_of(empty).eta_top(empty, 1.5)
+    assert top == pytest.approx(1.5 + 0.5 * empty.index_headroom)
     chosen = load_config(None, dict(field="hashgrid", width=1.0, output="sigmoid"))
-    assert chosen.hashgrid_output == "sigmoid" and chosen.step_mm == 0.125
+    assert hashgrid_config(chosen).output == "sigmoid" and step_mm(chosen) == 0.125
     with pytest.raises(ClrefractError, match="ramp output starts from the visual hull"):
         load_config(None, dict(field="hashgrid", init="empty", output="ramp")).validate()
     with pytest.raises(ClrefractError, match="output must be"):
@@ -308,10 +311,10 @@ def test_hash_grid_from_the_hull_defaults_to_its_line_search_at_half_a_millimetr
     rays a step, 32 steps, each validated, the grid fitted to the best; what a file or a flag
     says wins, and the resolved values survive config.toml. Other fields and a start from
     empty space keep Adam at 1 mm."""
-    from clrefract.fit import _toml
+    from clrefract.fit import step_mm, to_toml
 
     hg = load_config(None, dict(field="hashgrid"))
-    assert (hg.optimizer, hg.width, hg.step_mm) == ("line-search", 0.5, 0.125)
+    assert (hg.optimizer, hg.width, step_mm(hg)) == ("line-search", 0.5, 0.125)
     assert (hg.iterations, hg.line_batch, hg.validate_every, hg.refit) == (32, 32768, 1, "best")
     assert hg.patience == 16
     told = load_config(None, dict(field="hashgrid", width=1.0, optimizer="adam"))
@@ -319,7 +322,7 @@ def test_hash_grid_from_the_hull_defaults_to_its_line_search_at_half_a_millimetr
     (tmp_path / "fit.toml").write_text('field = "hashgrid"\nline_batch = 4096\n')
     from_file = load_config(tmp_path / "fit.toml", dict(iterations=3))
     assert (from_file.line_batch, from_file.iterations, from_file.width) == (4096, 3, 0.5)
-    (tmp_path / "config.toml").write_text(_toml(hg))
+    (tmp_path / "config.toml").write_text(to_toml(hg))
     assert load_config(tmp_path / "config.toml", {}) == hg
     for other in (dict(field="hashgrid", init="empty"), dict(field="levelset"), {}):
         cfg = load_config(None, other)

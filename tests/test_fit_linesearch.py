@@ -1,4 +1,4 @@
-"""The level set's line-search optimiser (clrefract/fit_linesearch.py)."""
+"""The level set's line-search optimiser (clrefract/fit/linesearch.py, optimizers.py)."""
 
 from __future__ import annotations
 
@@ -49,7 +49,7 @@ def test_a_line_search_takes_its_own_number_of_steps_unless_told(tmp_path):
 
 
 def test_smoothing_keeps_the_gradients_sum_and_spreads_a_spike():
-    from clrefract.fit_linesearch import smoothed
+    from clrefract.fit.linesearch import smoothed
 
     g = np.zeros((32, 32, 32))
     g[16, 16, 16] = 1.0
@@ -67,7 +67,7 @@ def test_several_scales_weigh_broad_errors_by_their_size(tmp_path):
     a spike about once (each Gaussian's peak times sigma^2 falls as 1 / sigma): broad errors
     move faster than ripples. A single number, as the config files of earlier runs hold,
     is one scale."""
-    from clrefract.fit_linesearch import smoothed
+    from clrefract.fit.linesearch import smoothed
 
     shape = (32, 32, 32)
     flat = np.ones(int(np.prod(shape)))
@@ -165,13 +165,16 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path, refi
     data = tmp_path / "sphere"
     make_dataset("sphere", data, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
     fit = prepare_fit(data, tmp_path / "run", load_config(None, overrides))
-    start, grid_start = fit.validation_loss(), fit.held_out_loss(fit._validation_tracer())
+    start, grid_start = (
+        fit.validation_loss(),
+        fit.held_out_loss(fit.optimizer.validation_tracer(fit)),
+    )
     result = fit.run()
     rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
     moved = [r for r in rows if r["step_mm"] > 0]
     assert len(moved) >= 2, rows
     assert result["best_val_loss"] < 0.9 * start, (result["best_val_loss"], start)
-    grid = fit.held_out_loss(fit._validation_tracer())
+    grid = fit.held_out_loss(fit.optimizer.validation_tracer(fit))
     assert grid < 0.9 * grid_start, (grid, grid_start)
     if refit == "step":
         assert all(r["distilled_rms"] < 0.01 for r in moved), rows
@@ -181,24 +184,26 @@ def test_hash_grid_follows_its_level_set_down_and_resumes_with_it(tmp_path, refi
 
     again = prepare_fit(data, fit.out, load_config(None, overrides), resume=True)
     assert again.it == 3
-    assert np.array_equal(again.guide.params, fit.guide.params)
+    assert np.array_equal(again.optimizer.guide.params, fit.optimizer.guide.params)
     # a run in progress renders what its steps move: the level set, unless the grid follows
     from clrefract.fields.hashgrid import HashGridField
     from clrefract.fit import field_from_run
 
     shown = field_from_run(fit.out)
     if refit == "best":
-        assert np.array_equal(shown.data(), fit.guide.params)
+        assert np.array_equal(shown.data(), fit.optimizer.guide.params)
     else:
         assert isinstance(shown, HashGridField)
     # the grid's top index follows its guide's, through the checkpoint and the best kept
     top = again.field.config.eta_max
-    assert top == pytest.approx(again.cfg.hashgrid_eta_max(again.guide.params[-1]), abs=1e-12)
+    guide_index = again.optimizer.guide.params[-1]
+    assert top == pytest.approx(again.kind.eta_top(again.cfg, guide_index), abs=1e-12)
     kept = HashGridField.load(fit.out / "field.npz").config.eta_max
-    assert kept == pytest.approx(fit.best_eta_max or top, abs=1e-12)
-    idx = fit._mask_batch(5)
-    with_guide = fit.guide.engine.tracer.trace(fit.origins[idx], fit.dirs[idx])
-    resumed = again.guide.engine.tracer.trace(again.origins[idx], again.dirs[idx])
+    assert kept == pytest.approx(fit.best.eta_max or top, abs=1e-12)
+    idx = fit.rays.mask_batch((5,))
+    rays = fit.rays.origins[idx], fit.rays.dirs[idx]
+    with_guide = fit.optimizer.guide.tracer.trace(*rays)
+    resumed = again.optimizer.guide.tracer.trace(*rays)
     assert np.allclose(resumed.direction, with_guide.direction, atol=1e-6)
 
 
@@ -266,8 +271,7 @@ def test_line_search_moves_a_wrong_index_towards_the_truth(tmp_path):
     )
     fit = prepare_fit(data, tmp_path / "run", cfg)
     fit.params[-1] = 1.35
-    fit.field.set_data(fit.params)
-    fit._upload()
+    fit.bound.set_params(fit.params, fit.it)
     fit.run()
     rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
     index = [r["index"] for r in rows]
@@ -287,8 +291,8 @@ def test_size_search_grows_a_shrunk_sphere_and_raises_its_index(tmp_path):
 
     from clrefract.fields.levelset import LevelSetField
     from clrefract.fit import Fit
+    from clrefract.fit.finishes import size_index_search
     from clrefract.report import scene_truth
-    from clrefract.size_search import size_index_search
     from clrefract.synth import MakeOptions, make_dataset
 
     data = tmp_path / "sphere"
@@ -297,21 +301,18 @@ def test_size_search_grows_a_shrunk_sphere_and_raises_its_index(tmp_path):
         None, dict(field="levelset", res=32, optimizer="line-search", val_views=4, batch=4096)
     )
     fit = Fit(data, tmp_path / "run", cfg, stream=io.StringIO())
-    fit._bind(fit._make_field(fit.start_grid()))
+    fit.bind(fit.make_field(fit.start_grid()))
     truth = scene_truth(fit.ds)
     shape = fit.field.phi.shape
     phi = LevelSetField.from_sdf(lambda p: truth.sdf(p)[0], fit.box, shape, 1.5, cfg.width)
-    fit.params[:] = np.append(phi.data()[:-1] + 0.2, 1.45)
-    fit.field.set_data(fit.params)
-    fit._upload()
-    row = size_index_search(fit)
+    fit.bound.set_params(np.append(phi.data()[:-1] + 0.2, 1.45), fit.it)
+    row = size_index_search(fit, fit.bound)
     assert row["kept"], row
     assert row["grow_mm"] >= 0.0 and 1.47 <= row["index"][1] <= 1.53, row
     before, after = row["held_out_loss"]
     assert after < 0.2 * before, row
     assert np.allclose(fit.params[:-1], phi.data()[:-1] + 0.2)  # the field it had, back
-    _, _, best = fit.best
-    assert np.allclose(best[:-1], fit.params[:-1] - row["grow_mm"])
+    assert np.allclose(fit.best.params[:-1], fit.params[:-1] - row["grow_mm"])
 
 
 def test_resume_with_another_width_narrows_a_finished_line_search(tmp_path, capsys):

@@ -13,8 +13,9 @@ import io
 import numpy as np
 import pytest
 
-from clrefract.adam import Adam
 from clrefract.fit import Fit, load_config
+from clrefract.fit.optimizers import AdamSteps
+from clrefract.fit.starts import distil_start
 from clrefract.report import scene_truth
 from clrefract.synth import MakeOptions, make_dataset
 
@@ -35,8 +36,8 @@ def test_hash_grid_descent_lowers_the_held_out_loss_of_a_perturbed_lens(lens, tm
     )  # fmt: skip
     fit = Fit(lens, tmp_path / "run", cfg, stream=io.StringIO())
     truth = scene_truth(fit.ds)
-    fit.start_from(dataclasses.replace(truth, radius=0.8 * truth.radius))
-    fit.adam = Adam(len(fit.params), fit._groups())
+    distil_start(fit, dataclasses.replace(truth, radius=0.8 * truth.radius))
+    fit.optimizer = AdamSteps(fit)
     start = fit.validation_loss()
     held_out = []
     for _ in range(cfg.iterations):

@@ -10,8 +10,9 @@ import pytest
 
 from clrefract.fields import load_field_file
 from clrefract.fields.hashgrid import HashGridField
-from clrefract.fit import held_out_views, load_config, prepare_fit
-from clrefract.fit_start import search_losses
+from clrefract.fit import load_config, prepare_fit
+from clrefract.fit.rays import batch_indices, held_out_views
+from clrefract.fit.starts import search_losses
 from clrefract.synth import MakeOptions, make_dataset
 
 
@@ -101,12 +102,10 @@ def test_held_out_views_are_spread_and_never_trained_on(sphere, tmp_path):
     # the split is the field's and the start's alike: an empty voxel grid needs no search
     fit = prepare_fit(sphere, tmp_path / "run", _cfg(field="voxel", init="empty", val_views=4))
     n = fit.ds.train[0].width * fit.ds.train[0].height
-    held = {int(i) // n for i in fit._held}
+    held = {int(i) // n for i in fit.rays.held}
     assert held == set(held_out_views(cfg, len(fit.ds.train)))
-    marked = fit._marked_pool()  # the rays a start searches and the mask share draws
+    marked = fit.rays.marked_pool()  # the rays a start searches and the mask share draws
     assert len(marked) > 1000 and not set((marked // n).tolist()) & held
-    from clrefract.fit import batch_indices
-
     for it in range(3):
-        idx = batch_indices(fit.cfg, it, fit._pool)
+        idx = batch_indices(fit.cfg, it, fit.rays.pool)
         assert not set((idx // n).tolist()) & held

@@ -202,9 +202,10 @@ def test_fit_starts_from_the_hull_filled_with_the_right_index(sphere_dataset, tm
     assert 1.25 <= info["eta"] <= 1.35 and -4 < info["offset_mm"] < -1, info
     assert info["loss"] < 0.9 * info["loss_empty"], info
     # only the nodes near the hull may change
-    assert 0.01 < fit._free.mean() < 0.2
+    free = fit.bound.free
+    assert 0.01 < free.mean() < 0.2
     m = fit.step()
-    assert np.all(fit.params[~fit._free] == 1.0) and np.isfinite(m["loss"])
+    assert np.all(fit.params[~free] == 1.0) and np.isfinite(m["loss"])
 
 
 def test_a_start_warns_when_the_object_runs_off_most_pictures(sphere_dataset, tmp_path):

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from clrefract import probe, runtime
+from clrefract import locations, probe, runtime
 from clrefract.envmap import EnvMap
 from clrefract.errors import BuildError, ClrefractError
 from clrefract.fields import field_from_spec
@@ -246,8 +246,8 @@ def test_kernel_sources_are_found_beside_a_checkout_package(monkeypatch, tmp_pat
     def missing(name):
         raise ModuleNotFoundError("No module named 'clrefract.kernels_cl'")
 
-    monkeypatch.setattr(runtime.resources, "files", missing)
-    monkeypatch.setattr(runtime, "__file__", str(tmp_path / "clrefract" / "runtime.py"))
-    assert "probe_builtins" in runtime.kernel_source("probe.cl")
+    monkeypatch.setattr(locations.resources, "files", missing)
+    monkeypatch.setattr(locations, "__file__", str(tmp_path / "clrefract" / "locations.py"))
+    assert "probe_builtins" in locations.kernel_source("probe.cl")
     with pytest.raises(ClrefractError, match="no-such.cl"):
-        runtime.kernel_source("no-such.cl")
+        locations.kernel_source("no-such.cl")

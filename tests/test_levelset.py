@@ -10,7 +10,6 @@ from clrefract.errors import ClrefractError
 from clrefract.fields import load_field_file
 from clrefract.fields.base import Box
 from clrefract.fields.levelset import LevelSetField
-from clrefract.fit_start import START_BATCH
 from clrefract.gradcheck import directional_errors, smooth_env
 from clrefract.gradient import GradientEngine
 from clrefract.tracer import Tracer, TraceSettings
@@ -154,8 +153,9 @@ def test_fit_starts_from_the_smoothed_hull_near_the_truth(tmp_path, monkeypatch)
     better than the one before."""
     import io
 
-    from clrefract.fit import Fit, load_config, prepare_fit
-    from clrefract.fit_start import search_losses
+    from clrefract.fit import load_config, prepare_fit
+    from clrefract.fit.objective import Objective
+    from clrefract.fit.starts import search_losses
     from clrefract.start_losses import NAME, count
     from clrefract.synth import MakeOptions, make_dataset
 
@@ -163,9 +163,9 @@ def test_fit_starts_from_the_smoothed_hull_near_the_truth(tmp_path, monkeypatch)
     make_dataset("sphere", data, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
     cfg = load_config(None, dict(field="levelset", res=32, iterations=2, batch=2048))
     calls = []
-    forward = Fit._forward_loss
+    forward = Objective.loss
     monkeypatch.setattr(
-        Fit, "_forward_loss", lambda self, idx: calls.append(1) or forward(self, idx)
+        Objective, "loss", lambda self, tracer, idx: calls.append(1) or forward(self, tracer, idx)
     )
     log = io.StringIO()
     fit = prepare_fit(data, tmp_path / "run", cfg, stream=log)
@@ -206,7 +206,7 @@ def test_high_index_glass_is_traced_with_a_step_fine_enough_to_find_its_index(tm
     default quarter of the width the true cylinder's loss is lowest at index 1.8 (measured
     0.0169 against 0.0183 at 1.9, 48 x 48 views); at the step scaled to the contrast (0.14
     mm), at 1.9 (0.0138 against 0.0153). A fresh level-set run records that step."""
-    from clrefract.fit import Fit, interface_step_scale, load_config, prepare_fit
+    from clrefract.fit import Fit, Tag, guide_config, interface_step_scale, load_config, prepare_fit
     from clrefract.report import scene_truth
     from clrefract.synth import MakeOptions, make_dataset
 
@@ -215,21 +215,20 @@ def test_high_index_glass_is_traced_with_a_step_fine_enough_to_find_its_index(tm
     make_dataset("cylinder", data, opt)
     cfg = load_config(None, dict(field="levelset", res=48, width=1.0, iterations=1))
     fit = Fit(data, tmp_path / "run", cfg)
-    fit.box = fit._object_box()
-    fit._size_from_images()
+    fit.box = fit.hulls.object_box()
+    fit.size_from_images()
     truth = scene_truth(fit.ds)
     phi = LevelSetField.from_sdf(lambda p: truth.sdf(p)[0], fit.box, 48, 1.9, 1.0).data()
-    idx = fit._mask_batch(START_BATCH)
+    idx = fit.rays.mask_batch(Tag.START)
 
     def losses(step):
-        fit._bind(fit._make_field(48), step=step)
+        fit.bind(fit.make_field(48), step=step)
         out = []
         for eta in (1.8, 1.9):
             fit.params[:] = phi
             fit.params[-1] = eta
-            fit.field.set_data(fit.params)
-            fit._upload()
-            out.append(fit._forward_loss(idx))
+            fit.bound.set_params(fit.params, fit.it)
+            out.append(fit.loss(idx))
         return out
 
     coarse, scaled = losses(0.25), losses(0.25 * interface_step_scale(1.9))
@@ -249,5 +248,5 @@ def test_high_index_glass_is_traced_with_a_step_fine_enough_to_find_its_index(tm
     assert saved.step == pytest.approx(0.25 * 0.5 / 0.9)
     # a hash grid's level-set guide (its start, its line search, a resume) steps alike
     # (at the hash grid's own default interface of 0.5 mm)
-    hashgrid = Fit(small, tmp_path / "hg", load_config(None, dict(field="hashgrid")))
-    assert hashgrid.guide_config().step == pytest.approx(0.5 / 4 * 0.5 / 0.9)
+    hashgrid = load_config(None, dict(field="hashgrid"))
+    assert guide_config(hashgrid, 1.9).step == pytest.approx(0.5 / 4 * 0.5 / 0.9)

@@ -152,9 +152,9 @@ def _cfg(path: Path) -> Path:
             precision="float64",
         ),
     )
-    from clrefract.fit import _toml
+    from clrefract.fit import to_toml
 
-    path.write_text(_toml(cfg))
+    path.write_text(to_toml(cfg))
     return path
 
 

@@ -8,14 +8,15 @@ import numpy as np
 import pytest
 from scipy.ndimage import binary_dilation
 
-from clrefract.adam import Adam
 from clrefract.errors import ClrefractError
 from clrefract.fields.analytic import Luneburg, Sphere
 from clrefract.fields.base import Box
 from clrefract.fields.levelset import LevelSetField
 from clrefract.fields.voxel import VoxelGrid
-from clrefract.fit import Fit, load_config
-from clrefract.fit_occupancy import TrainingOccupancy
+from clrefract.fit import Fit, kind_of, load_config
+from clrefract.fit.kinds import kind_named
+from clrefract.fit.occupancy import TrainingOccupancy
+from clrefract.fit.optimizers import AdamSteps
 from clrefract.gradcheck import smooth_env
 from clrefract.gradient import GradientEngine
 from clrefract.occupancy import (
@@ -224,9 +225,16 @@ def test_level_set_occupancy_holds_while_no_node_moves_more_than_the_slack():
         moved = LevelSetField(p[:-1].reshape(ls.shape), BOX, 1.5, 1.0)
         assert not (occupied_cells(moved, BOX, 24, dilate=0) & ~live).any()
     # a node moved by more than the slack may leave it: the fit then rebuilds at once
-    occ = TrainingOccupancy("levelset", 24, every=10, lr_phi=0.001)
-    assert not occ.due(0, ls) or occ.built_at is None
-    occ.built_at, occ._phi0 = 0, ls.phi.copy()
+    occ = TrainingOccupancy(kind_named("levelset"), 24, every=10, lr_phi=0.001)
+    assert occ.due(0, ls)  # never built
+
+    class Taker:  # stands in for a tracer: takes the occupancy a rebuild gives it
+        box = BOX
+
+        def set_occupancy(self, distance):
+            self.distance = distance
+
+    assert occ.update(0, ls, Taker(), force=True) and occ.rebuilds == 1
     assert not occ.due(5, ls)
     ls.phi[8, 8, 8] += 2.1 * occ.slack
     assert occ.due(5, ls) and occ.due(10, ls)
@@ -261,9 +269,8 @@ def test_hash_grids_skip_only_on_the_level_set_they_follow():
     for other in (dict(init="empty"), dict(optimizer="adam")):
         with pytest.raises(ClrefractError, match="hash grid"):
             load_config(None, dict(field="hashgrid", skip_empty=True, **other))
-    assert load_config(None, dict(field="hashgrid", skip_empty=True)).skipping_field() == (
-        "levelset"
-    )
+    cfg = load_config(None, dict(field="hashgrid", skip_empty=True))
+    assert kind_of(cfg).skipping_kind(cfg) == "levelset"
     with pytest.raises(ClrefractError, match="continuous"):
         load_config(None, dict(field="levelset", skip_empty=True, adjoint="discrete"))
 
@@ -311,12 +318,12 @@ def test_fit_steps_match_without_skipping(sphere_data, tmp_path, kind):
                  occupancy_every=2, init="hull"),
         )  # fmt: skip
         fit = Fit(sphere_data, tmp_path / f"run{skip}", cfg)
-        fit._bind(_truth(kind, fit.box))
-        fit.adam = Adam(len(fit.params), fit._groups())
+        fit.bind(_truth(kind, fit.box))
+        fit.optimizer = AdamSteps(fit)
         runs.append([fit.step() for _ in range(3)])
         if skip:
-            assert fit._occ.rebuilds >= 2  # at the bind, and when due
-            assert fit._occ.live_fraction < 0.7
+            assert fit.occupancy.rebuilds >= 2  # at the bind, and when due
+            assert fit.occupancy.live_fraction < 0.7
     for a, b in zip(*runs):
         assert abs(a["loss"] - b["loss"]) <= 1e-9 * a["loss"]
         assert b["steps_per_ray"] < a["steps_per_ray"] * 0.8
@@ -345,7 +352,7 @@ def test_a_hash_grid_fit_skips_on_its_level_set_alone(sphere_data, tmp_path, ref
         )  # fmt: skip
         run = tmp_path / f"run{skip}"
         fit = prepare_fit(sphere_data, run, cfg, stream=io.StringIO())
-        assert fit.guide.engine.tracer.skip_empty is skip
+        assert fit.optimizer.guide.engine.tracer.skip_empty is skip
         assert fit.engine.tracer.skip_empty is False
         fit.run()
         rows = [json.loads(line) for line in (run / "start_losses.jsonl").open()]
@@ -353,9 +360,10 @@ def test_a_hash_grid_fit_skips_on_its_level_set_alone(sphere_data, tmp_path, ref
         first = json.loads((run / "metrics.jsonl").read_text().splitlines()[0])
         runs.append((losses, first["loss"], first["val_loss"]))
         # the grid's validation skips too, on an occupancy sampled from the grid
-        assert (fit._val_tracer is not None) is (skip and refit == "step")
-        if fit._val_tracer is not None:
-            assert (fit._val_tracer.occupancy > 0).mean() > 0.3
+        grid_tracer = fit.optimizer.grid_tracer
+        assert (grid_tracer is not None) is (skip and refit == "step")
+        if grid_tracer is not None:
+            assert (grid_tracer.occupancy > 0).mean() > 0.3
     (plain, plain_step, plain_val), (skipped, skipped_step, skipped_val) = runs
     assert plain.keys() == skipped.keys() and len(plain) > 50
     # measured: 1.3e-15 at the median, 5.5e-9 at most (a ray circling inside the glass

@@ -44,8 +44,9 @@ def test_an_interrupted_start_is_taken_up_where_it_stopped(tmp_path, monkeypatch
     """A level-set start on a small sphere, interrupted after 40 of its losses: the run
     folder keeps them (and no run), --resume says what to do, and the same command traces
     only the rest and picks the start of an uninterrupted run, to the bit."""
-    from clrefract.fit import Fit, load_config, prepare_fit
-    from clrefract.fit_start import search_losses
+    from clrefract.fit import load_config, prepare_fit
+    from clrefract.fit.objective import Objective
+    from clrefract.fit.starts import search_losses
     from clrefract.synth import MakeOptions, make_dataset
 
     data = tmp_path / "sphere"
@@ -55,16 +56,16 @@ def test_an_interrupted_start_is_taken_up_where_it_stopped(tmp_path, monkeypatch
     prepare_fit(data, tmp_path / "whole", load_config(None, settings))
     whole = json.loads((tmp_path / "whole" / "init.json").read_text())
 
-    forward, calls = Fit._forward_loss, []
+    forward, calls = Objective.loss, []
 
-    def interrupted(self, idx):
+    def interrupted(self, tracer, idx):
         if len(calls) == 40:
             raise KeyboardInterrupt
         calls.append(1)
-        return forward(self, idx)
+        return forward(self, tracer, idx)
 
     run = tmp_path / "run"
-    monkeypatch.setattr(Fit, "_forward_loss", interrupted)
+    monkeypatch.setattr(Objective, "loss", interrupted)
     log = io.StringIO()
     with pytest.raises(KeyboardInterrupt):
         prepare_fit(data, run, load_config(None, settings), stream=log)
@@ -75,7 +76,7 @@ def test_an_interrupted_start_is_taken_up_where_it_stopped(tmp_path, monkeypatch
 
     calls.clear()
     monkeypatch.setattr(
-        Fit, "_forward_loss", lambda self, idx: calls.append(1) or forward(self, idx)
+        Objective, "loss", lambda self, tracer, idx: calls.append(1) or forward(self, tracer, idx)
     )
     log = io.StringIO()
     prepare_fit(data, run, load_config(None, settings), stream=log)
@@ -95,8 +96,9 @@ def test_coarse_grids_rank_on_a_share_of_the_rays_and_pick_the_whole_batchs_star
     """The level set's coarse grids (offset x index, shells) trace fewer rays per candidate
     (a quarter, but no fewer than COARSE_RAYS), the same rays for each; the start picked
     is the one the whole batch picks."""
-    from clrefract import fit_start
-    from clrefract.fit import Fit, load_config, prepare_fit
+    from clrefract.fit import load_config, prepare_fit
+    from clrefract.fit import starts as fit_start
+    from clrefract.fit.objective import Objective
     from clrefract.synth import MakeOptions, make_dataset
 
     assert fit_start.coarse_rays(8192) == 2048 and fit_start.coarse_rays(4096) == 2048
@@ -104,17 +106,17 @@ def test_coarse_grids_rank_on_a_share_of_the_rays_and_pick_the_whole_batchs_star
     data = tmp_path / "sphere"
     make_dataset("sphere", data, MakeOptions(views=16, res=40, env_width=256, volume_res=16))
     settings = dict(field="levelset", res=16, iterations=1, batch=4096, tighten_hull=False)
-    forward, rays, picks = Fit._forward_loss, {}, {}
+    forward, rays, picks = Objective.loss, {}, {}
     for share in (1, fit_start.COARSE_SHARE):
         traced = rays.setdefault(share, [])
         monkeypatch.setattr(fit_start, "COARSE_SHARE", share)
         monkeypatch.setattr(fit_start, "COARSE_RAYS", 4096 // fit_start.COARSE_SHARE)
 
-        def counted(self, idx, t=traced):
+        def counted(self, tracer, idx, t=traced):
             t.append(len(idx))
-            return forward(self, idx)
+            return forward(self, tracer, idx)
 
-        monkeypatch.setattr(Fit, "_forward_loss", counted)
+        monkeypatch.setattr(Objective, "loss", counted)
         prepare_fit(data, tmp_path / f"run{share}", load_config(None, settings))
         init = json.loads((tmp_path / f"run{share}" / "init.json").read_text())
         picks[share] = {k: init[k] for k in ("eta", "offset_mm", "smoothing_mm", "loss")}

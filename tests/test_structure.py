@@ -90,3 +90,56 @@ def test_no_module_imports_another_modules_private_name():
         if name and private(name) and target.split(".")[0] == "clrefract"
     ]
     assert not bad, "private names imported from another module:\n" + "\n".join(bad)
+
+
+KINDS = {"voxel", "levelset", "hashgrid"}
+
+
+def names_compared(node: ast.Compare) -> set[str]:
+    """The string constants a comparison tests against (alone, or in a tuple, list or set)."""
+    found = set()
+    for side in [node.left, *node.comparators]:
+        items = side.elts if isinstance(side, ast.Tuple | ast.List | ast.Set) else [side]
+        found |= {
+            i.value for i in items if isinstance(i, ast.Constant) and isinstance(i.value, str)
+        }
+    return found
+
+
+def test_only_the_field_adapters_branch_on_the_field_kind():
+    """The fit asks its adapter (clrefract/fit/kinds.py), as the tracer asks a field for its
+    kernels: no other module compares anything with a kind's name. Fields name their own
+    kind (fields/), and the kinds' adapters are the one table of them."""
+    allowed = {"clrefract.fit.kinds"}
+    files = {m: p for m, p in sources("clrefract").items() if not m.startswith("clrefract.fields")}
+    bad = [
+        f"{path.relative_to(ROOT)}:{node.lineno}: {ast.unparse(node)}"
+        for m, path in files.items()
+        if m not in allowed
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.Compare) and names_compared(node) & KINDS
+    ]
+    assert not bad, "branches on the field kind outside its adapter:\n" + "\n".join(bad)
+
+
+def test_no_private_name_of_the_fit_is_reached_from_another_module():
+    """A private attribute or method of the fit's objects (clrefract/fit/) is used only in
+    the module that defines it, on `self`."""
+    fit_files = sources("clrefract/fit")
+    defined = {}
+    for m, path in fit_files.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.ClassDef) and private(node.name):
+                defined.setdefault(node.name, set()).add(m)
+            if isinstance(node, ast.Attribute) and private(node.attr):
+                if isinstance(node.value, ast.Name) and node.value.id == "self":
+                    defined.setdefault(node.attr, set()).add(m)
+    bad = []
+    for m, path in sources("clrefract", "tools", "tests").items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.Attribute) and node.attr in defined):
+                continue
+            on_self = isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")
+            if not (on_self and m in defined[node.attr]):
+                bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {ast.unparse(node)}")
+    assert not bad, "the fit's private names reached from outside:\n" + "\n".join(bad)

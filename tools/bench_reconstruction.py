@@ -93,9 +93,9 @@ def bench_scene(scene: str, args) -> dict:
     elif cfg.field == "hashgrid":  # the truth fitted the way the start is
         from dataclasses import replace
 
-        from clrefract.fit import fit_to_field
+        from clrefract.fit import fit_to_field, kind_of
 
-        top = cfg.hashgrid_eta_max(truth.eta)  # the truth's index, not the start's
+        top = kind_of(cfg).eta_top(cfg, truth.eta)  # the truth's index, not the start's
         hc = replace(fit.field.config, eta_max=top)
         ceiling = fit.field.__class__(hc, fit.box, seed=cfg.seed)
         fit_to_field(
@@ -117,7 +117,8 @@ def bench_scene(scene: str, args) -> dict:
         if cfg.field == "levelset":
             row["fit"]["index"] = float(fit.params[-1])
         else:  # its eta_max, less the sigmoid's headroom (the index a ramp's eta_max is)
-            row["fit"]["index"] = 1 + (fit.eta_max - 1) / (cfg.hashgrid_eta_max(2.0) - 1)
+            top = fit.kind.eta_top(cfg, 2.0)
+            row["fit"]["index"] = 1 + (fit.eta_max - 1) / (top - 1)
     return row
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from bench_line_search import resumed_copy
 
-from clrefract.fit_linesearch import refit_to_best
+from clrefract.fit.runfolder import Best
 
 
 def main() -> None:
@@ -54,8 +54,9 @@ def main() -> None:
                         )
                     )
                 if mode == "best" and r == args.rounds - 1:
-                    fit.best = (0.0, fit.it, fit.guide.params.copy())  # its last step
-                    final = refit_to_best(fit)
+                    guided = fit.optimizer
+                    fit.best = Best(0.0, fit.it, guided.guide.params.copy())  # its last step
+                    final = guided.refit_to_best(fit)
     print(
         f"{'refit':6s} {'round':>5s} {'step s':>7s} {'valid. s':>8s} {'held-out':>9s} {'move':>6s}"
     )

@@ -1,6 +1,6 @@
 """Empty-space skipping: the same exit rays, fewer steps, less time, for objects that fill
 a small part of the box; and in training, the same loss and gradient (forward and backward
-pass, the fit's occupancy rule: fit_occupancy.py) for less time. The rendering part includes
+pass, the fit's occupancy rule: fit/occupancy.py) for less time. The rendering part includes
 a hash grid from the hull, as fits score and validate it (render.run_tracer), and the time
 to sample each field's occupancy on the device.
 
@@ -33,7 +33,7 @@ def hashgrid_ball():
     on the device to a ball of radius 10 at a 0.5 mm interface, in a box as a fit's object
     box is around it; its step is the fit's (w/4)."""
     from clrefract.fields.hashgrid import HashGridField
-    from clrefract.fit import FitConfig, hashgrid_config
+    from clrefract.fit import FitConfig, hashgrid_config, step_mm
     from clrefract.runtime import default_runtime
 
     cfg = FitConfig(field="hashgrid", width=0.5)
@@ -42,7 +42,7 @@ def hashgrid_ball():
     r = np.linalg.norm(pts, axis=1)
     device = (default_runtime(), "float32")
     field.fit_surface(pts, r - 10.0, pts / r[:, None], 1.5, 0.5, 600, device=device)
-    return field, cfg.step_mm
+    return field, step_mm(cfg)
 
 
 def timed(tr, o, d, repeats=3):

@@ -142,7 +142,7 @@ class FitConfig:
     adjoint: str = "continuous"
     # empty-space skipping in the forward and backward passes: rays fly straight through
     # cells where eta cannot vary before the occupancy (occupancy_res^3 over the box) is
-    # rebuilt from the parameters, every occupancy_every iterations (clrefract/fit_occupancy.py: a
+    # rebuilt from the parameters, every occupancy_every iterations (clrefract/fit/occupancy.py: a
     # level set's band plus its drift, a voxel grid's free nodes). A hash grid's own rays
     # cannot skip; from the hull with the line search, the level set it follows (its start
     # search and its steps) does, by default (kinds.HashGridKind.defaults)
@@ -256,8 +256,135 @@ class FitConfig:
             )
 
 
+# each key's `clrefract fit --help` text (cli.py appends its default unless the text gives
+# it, as where it depends on the field kind or the optimiser)
+HELP = {
+    "field": "voxel: eta on a grid (any medium); levelset: one index inside a sharp surface "
+    "(glass, water: the sharpest fits); hashgrid: hash grid + MLP",
+    "res": "grid resolution (voxel values or level set); 0: one cell per pixel at the object",
+    "res_schedule": "voxel grids: coarse-to-fine resolutions before --res, e.g. 16 32 (the "
+    "hull start wants the final grid at once)",
+    "interp": "voxel weights: C2 tricubic B-spline, C1 smoothstep or trilinear",
+    "width": "interface width, mm; with --resume, a line-search run's new width, its size and "
+    "index searched again there (default: 1.0; a hash grid from the hull 0.5)",
+    "lr_phi": "learning rate of the level set's distance, mm per step",
+    "lr_index": "learning rate of the level set's index",
+    "levels": "hash grid levels",
+    "features": "hash grid features per level",
+    "log2_table": "hash table size, log2",
+    "n_min": "hash grid's coarsest level resolution",
+    "n_max": "hash grid's finest level resolution over the object's box; 0: one cell per "
+    "pixel at the object",
+    "hidden": "MLP width",
+    "layers": "MLP hidden layers",
+    "eta_max": "hash grid's highest index (0: the scene's upper eta bound, from the hull plus "
+    "--index-headroom)",
+    "output": "how the hash grid's MLP output becomes eta: ramp (a level set's C2 ramp, an "
+    "interface) or sigmoid (smooth everywhere, for a start from empty space) (default: ramp "
+    "from the hull, sigmoid from empty space)",
+    "index_headroom": "a sigmoid hash grid from the hull starts with eta_max this far above "
+    "the start's index, in units of index - 1",
+    "distil_iterations": "steps fitting the hash grid to its level-set start",
+    "distil_on": "where that fitting (and a line search's refits) runs: device (the fit's "
+    "OpenCL device and precision) or host (float64 NumPy)",
+    "iterations": "steps of the optimiser (default: 600 for Adam; a line search 16, a hash "
+    "grid's 32)",
+    "batch": "rays per iteration",
+    "lr": "learning rate of voxel values (a level set's index)",
+    "lr_table": "learning rate of hash tables",
+    "lr_mlp": "learning rate of the MLP",
+    "lr_final": "learning rates decay exponentially to this fraction",
+    "optimizer": "adam, or line-search (level sets, and hash grids from the hull through their "
+    "level set: the rays whose adjoint stays tame, a smoothed shape gradient and the best of "
+    "a few moves along it) (default: adam; a hash grid from the hull line-search)",
+    "keep_growth": "line search: keep the rays whose adjoint grows at most this factor",
+    "grad_sigma": "line search: smooth the shape gradient over these scales, cells (each "
+    "weighted by its square)",
+    "line_steps": "line search: moves along the smoothed gradient tried each step, mm (the "
+    "best is taken)",
+    "index_steps": "line search: index moves tried after each shape move (none: the index "
+    "stays the start's)",
+    "refit_iterations": "steps of a hash grid's refit to the level set its line search moved",
+    "refit": "hash grid line search: fit the grid to the best step once, at the end (best), "
+    "or after every move taken, validating the grid (step)",
+    "size_search": "after a line search, grow its best level set and move its index together, "
+    "kept where the held-out views agree",
+    "line_batch": "mask rays a line-search step takes (default: 0, the batch; a hash grid "
+    "from the hull 32768)",
+    "reg": "smoothness regulariser weight",
+    "sparsity": "weight of an L1 pull of voxel values towards eta = 1 (empty space)",
+    "init": "start from the visual hull of the refraction masks or eta = 1",
+    "mask_threshold": "sRGB difference from the straight view that marks a mask pixel",
+    "free_cells": "cells around the hull where eta may change (-1: everywhere)",
+    "hull_tolerance": "share of the views a hull point may lie outside",
+    "hull_carve": "leave out of the hull a view whose mask carves more than this share of the "
+    "other views' hull (0: keep every view)",
+    "tighten_hull": "level sets: also try the hull tightened by silhouette-held curvature "
+    "flow, kept if its loss is lower",
+    "shell_starts": "level sets: also try the hull hollowed to shells 2, 4 and 6 cells deep "
+    "(a bowl, a glass)",
+    "mask_share": "share of each training batch drawn from the refraction masks (0: all "
+    "pixels alike)",
+    "block": "compare training images by blocks of this many pixels a side at first, halving "
+    "to single pixels by --block-until (0 or 1: pixels throughout)",
+    "block_until": "fraction of the iterations by which the blocks reach single pixels",
+    "env_blur": "initial environment blur, pixels, sharpened to 0",
+    "blur_until": "fraction of the iterations over which the blur goes to 0",
+    "step": "integrator step, mm (default: 0, automatic: width/4 for level sets and hash "
+    "grids, finer above index 1.5; half a cell of the final grid for voxel grids)",
+    "backward_checkpoints": "forward states kept every this many steps for the backward pass "
+    "(0: constant memory)",
+    "adjoint_growth_max": "stop a ray's backward pass once its adjoint grew by this factor "
+    "(0: never)",
+    "adjoint": "backward pass: adjoint-state ODE (continuous) or the exact discrete adjoint "
+    "of each step, replayed from checkpoints",
+    "skip_empty": "rays fly straight through cells where eta cannot vary, forward and "
+    "backward (level set, voxel, and a hash grid's level set from the hull; same gradient, "
+    "less time where the object is small) (default: false; a hash grid from the hull with "
+    "the line search true)",
+    "occupancy_every": "with --skip-empty: rebuild the occupancy every this many iterations",
+    "occupancy_res": "with --skip-empty: occupancy grid resolution over the box, per axis",
+    "precision": "floating-point precision of the device kernels",
+    "loss": "colour space of the loss: srgb (encoded and clipped, as the test metrics) or "
+    "linear radiance",
+    "queues": "command queues the batch is split across",
+    "lanes": "rays per work-item (0: the device's default)",
+    "device": "OpenCL device: 'P:D' index or a name substring; under MPI a comma-separated "
+    "list indexed by local rank (default: PYOPENCL_CTX, else the first GPU, else a CPU)",
+    "chunks": "under MPI, each batch is cut into this many pieces (a power of two) summed in "
+    "one fixed order: any number of ranks up to it gives the same gradient",
+    "seed": "random seed (batches, the hash grid's start, the hull's tightening)",
+    "checkpoint_every": "save a checkpoint every this many iterations",
+    "validate_every": "held-out loss every this many iterations, the best parameters kept "
+    "(0: never) (default: 25; a line search 1)",
+    "patience": "stop once this many validated steps in a row find no better held-out loss "
+    "(0: run every iteration) (default: 0; a line search 16)",
+    "val_views": "hold every k-th training view out of the gradient for validation (0, or "
+    "fewer than five training views each: validate on training rays)",
+    "diverge_factor": "stop once the held-out loss exceeds its best by this factor, keeping "
+    "the best field (0: never); a non-finite loss, gradient or parameter always stops",
+    "test_views": "test views rendered at the end (-1: all)",
+    "box": "the object's box in mm, instead of scene.json's or the cameras' (default: the "
+    "dataset's)",
+}
+
+
 ADJOINTS = ("continuous", "discrete")
 OPTIMIZERS = ("adam", "line-search")
+# keys of a fixed set of values, as `validate`, kinds.KINDS and configure.py check them
+# ("" for output: ramp from the hull, sigmoid from empty space)
+CHOICES = {
+    "field": ("levelset", "voxel", "hashgrid"),
+    "interp": ("bspline", "smoothstep", "trilinear"),
+    "output": ("ramp", "sigmoid"),
+    "init": ("hull", "empty"),
+    "distil_on": ("device", "host"),
+    "optimizer": OPTIMIZERS,
+    "refit": ("best", "step"),
+    "adjoint": ADJOINTS,
+    "precision": ("float32", "float64"),
+    "loss": ("srgb", "linear"),
+}
 KNOWN = {f.name: f for f in fields(FitConfig)}
 
 
@@ -302,9 +429,6 @@ def _as_type_of(default, key: str, v):
     try:
         if isinstance(default, tuple):  # a string or a number is one value, not letters
             return (v,) if isinstance(v, str | int | float) else tuple(v)
-        v = type(default)(v)
+        return type(default)(v)
     except (TypeError, ValueError):
         raise bad from None
-    if isinstance(v, float) and math.isnan(v):
-        raise bad
-    return v

@@ -142,7 +142,28 @@ class FieldKind:
 
     def resolution_at(self, cfg: FitConfig, it: int) -> int:
         """The grid resolution at an iteration (coarse to fine where the kind has one)."""
-        return cfg.res
+        return cfg.res if self.grid else 0
+
+    # --- empty-space skipping while it trains (occupancy.py) ---------------------------------
+    def occupancy_slack(self, every: int, lr_phi: float) -> float:
+        """How far the field's surface may move between two rebuilds (mm)."""
+        return 0.0
+
+    def snapshot(self, field):
+        """What a rebuild remembers of the field (None: nothing)."""
+        return None
+
+    def moved_past(self, field, snapshot, slack: float) -> bool:
+        """Whether the field moved further than the slack since `snapshot`."""
+        return False
+
+    def unchanged(self, field, snapshot) -> bool:
+        """Whether the field is as it was at `snapshot` (False where nothing was kept)."""
+        return False
+
+    def live_cells(self, field, box, res: int, slack: float, free) -> np.ndarray:
+        """The cells where eta varies now or can before the next rebuild."""
+        return np.ones((res,) * 3, bool)
 
 
 class VoxelKind(FieldKind):
@@ -188,6 +209,16 @@ class VoxelKind(FieldKind):
     def early_step(self, box, res):
         return voxel_step(box, res)
 
+    def live_cells(self, field, box, res, slack, free):
+        from ..occupancy import live_cells_nodes
+
+        if free is None:
+            return np.ones((res,) * 3, bool)
+        # nodes off 1 too: a hull filled wider than the free nodes, before the first step
+        # resets them
+        nodes = free.reshape(field.values.shape) | (field.values != 1.0)
+        return live_cells_nodes(nodes, field, box, res)
+
     def resolution_at(self, cfg, it):
         """Coarse to fine: the schedule splits the first half of the iterations."""
         sched = [r for r in cfg.res_schedule if r < cfg.res]
@@ -219,6 +250,23 @@ class LevelSetKind(FieldKind):
 
     def start(self, cfg):
         return "levelset-hull"
+
+    def occupancy_slack(self, every, lr_phi):
+        return 2.0 * every * lr_phi  # Adam moves a node by about its rate per step
+
+    def snapshot(self, field):
+        return field.phi.copy()
+
+    def moved_past(self, field, snapshot, slack):
+        return float(np.abs(field.phi - snapshot).max()) > slack
+
+    def unchanged(self, field, snapshot):
+        return snapshot is not None and np.array_equal(field.phi, snapshot)
+
+    def live_cells(self, field, box, res, slack, free):
+        from ..occupancy import live_cells_levelset
+
+        return live_cells_levelset(field, box, res, slack)
 
     def make(self, cfg, box, eta_max, res):
         from ..fields.levelset import LevelSetField

@@ -40,7 +40,7 @@ def train(fit) -> dict:
                     )
                 if fit.it == 0 and not fit.best.found:
                     fit.track_best()  # the start is a candidate too
-                row = fit.optimizer.step(fit)
+                row = fit.step()
                 val = fit.track_best()
                 if val is not None:
                     row["val_loss"] = val

@@ -139,7 +139,7 @@ class GuidedLineSearch(LineSearch):
     def __init__(self, fit, guide, guide_eta_max: float):
         super().__init__(fit)
         self.guide, self.guide_eta_max = guide, guide_eta_max
-        self._val_tracer = None
+        self.grid_tracer = None
 
     @classmethod
     def resumed(cls, fit, ckpt) -> GuidedLineSearch:
@@ -175,9 +175,9 @@ class GuidedLineSearch(LineSearch):
     def validation_loss(self, fit) -> float:
         if fit.cfg.refit == "best":
             return fit.objective.held_out_loss(self.guide.tracer)
-        return fit.objective.held_out_loss(self._validation_tracer(fit) or fit.bound.tracer)
+        return fit.objective.held_out_loss(self.validation_tracer(fit) or fit.bound.tracer)
 
-    def _validation_tracer(self, fit):
+    def validation_tracer(self, fit):
         """With skip_empty, the grid is validated through rays that skip the cells where its
         eta is constant, sampled from the grid as it is now (it changes between validations
         only by a refit), and steps as its engine does. Forward only, so no gradient is
@@ -185,10 +185,10 @@ class GuidedLineSearch(LineSearch):
         and 1.7 s to sample the grid."""
         if not fit.cfg.skip_empty:
             return None
-        tracer = self._val_tracer
+        tracer = self.grid_tracer
         if tracer is None or tracer.field is not fit.field:
-            self._val_tracer = fit.forward_tracer(fit.field, interface_steps=False)
-            return self._val_tracer
+            self.grid_tracer = fit.forward_tracer(fit.field, interface_steps=False)
+            return self.grid_tracer
         tracer.upload_field()
         tracer.set_occupancy(tracer.field_occupancy())
         return tracer

@@ -68,6 +68,9 @@ class RunFolder:
     def __str__(self) -> str:
         return str(self.path)
 
+    def __fspath__(self) -> str:  # a run folder is where a path is asked for
+        return str(self.path)
+
     # --- config.toml -------------------------------------------------------------------------
     def write_config(self, cfg: FitConfig) -> None:
         # whole or not at all: under MPI the other ranks read it

@@ -130,9 +130,9 @@ class DistilledStart:
     output bias alone would take thousands of steps to reach glass. The level set (and the
     eta_max it was made with) is returned: a line search follows it."""
 
-    def run(self, fit, res: int) -> None:
+    def run(self, fit, res: int):
         cfg = guide_config(fit.cfg, fit.ds.scene.eta_range[1])
-        guide = fit.bound_for(make_field(cfg, fit.box, fit.eta_max, res), step=cfg.step)
+        guide = fit.bound_for(make_field(cfg, fit.box, fit.eta_max, cfg.res), step=cfg.step)
         HullSearch(fit, guide, levelset=True).fill()
         made_with = fit.eta_max
         if not fit.cfg.eta_max:

@@ -9,11 +9,13 @@ import sys
 import numpy as np
 
 from ..dataset import Dataset, box_of
+from ..errors import ClrefractError
 from .binding import Bound, engine_for, forward_settings
 from .config import FitConfig
-from .kinds import interface_step_scale, kind_of
+from .kinds import interface_step_scale, kind_named, kind_of
 from .loop import train
 from .objective import Objective
+from .occupancy import TrainingOccupancy
 from .optimizers import optimizer_for
 from .rays import TrainingRays
 from .runfolder import Best, Checkpoint, RunFolder
@@ -23,7 +25,7 @@ from .starts import STARTS, Hulls
 class Fit:
     """One fitting run on one dataset, in one run folder."""
 
-    def __init__(self, dataset, out, cfg: FitConfig, stream=None, folder: RunFolder = None):
+    def __init__(self, dataset, out, cfg: FitConfig, stream=None, folder: RunFolder | None = None):
         from ..parallel import device_for
         from ..runtime import Runtime
 
@@ -48,10 +50,8 @@ class Fit:
         self.optimizer = None
         self.record: dict = {}  # what results.json reports beside the scores
         self.occupancy = None
-        if cfg.skip_empty:
-            from ..fit_occupancy import TrainingOccupancy
-
-            kind = self.kind.skipping_kind(cfg)
+        if cfg.skip_empty:  # one rule, for the kind of field whose rays skip
+            kind = kind_named(self.kind.skipping_kind(cfg))
             self.occupancy = TrainingOccupancy(
                 kind, cfg.occupancy_res, cfg.occupancy_every, cfg.lr_phi
             )
@@ -93,7 +93,7 @@ class Fit:
         """Finish with another field and the settings it was fitted with (a narrowed run's
         earlier width)."""
         self.cfg = cfg
-        self.bind(field)
+        self.bound = Bound(field, engine=None)  # saved and scored, never traced back
 
     def groups(self):
         """The field's parameter groups with the configured rates (Adam's)."""
@@ -127,6 +127,10 @@ class Fit:
 
         settings = forward_settings(cfg or self.cfg, interface_steps)
         return run_tracer(field, self.box, settings, self.runtime)
+
+    def step(self) -> dict:
+        """One step of the optimiser; its metrics row."""
+        return self.optimizer.step(self)
 
     def run(self) -> dict:
         """Train to the end (loop.py); the results."""
@@ -175,6 +179,10 @@ class Fit:
         """The held-out loss of the field the optimiser has the held-out views judge."""
         return self.optimizer.validation_loss(self)
 
+    def loss(self, idx: np.ndarray, tracer=None) -> float:
+        """The loss of training rays idx through the fit's field (or `tracer`)."""
+        return self.objective.loss(tracer or self.bound.tracer, idx)
+
     def held_out_loss(self, tracer=None) -> float:
         """The held-out loss of the fit's own field, traced by its engine or `tracer`."""
         return self.objective.held_out_loss(tracer or self.bound.tracer)
@@ -213,7 +221,10 @@ class Fit:
         # uninterrupted run's did
         self.bind(self.make_field(ckpt.resolution))
         if len(ckpt.params) != len(self.params):
-            raise_mismatch(self.out.checkpoint_path, len(ckpt.params), len(self.params))
+            raise ClrefractError(
+                f"{self.out.checkpoint_path}: checkpoint has {len(ckpt.params)} parameters, "
+                f"the configured field has {len(self.params)}"
+            )
         self.params[:] = ckpt.params
         self.field.set_data(self.params)
         self.bound.upload(self.it)
@@ -221,11 +232,3 @@ class Fit:
         self.best = ckpt.best
         self.optimizer = optimizer_for(self, ckpt)
         self.optimizer.restore(self, ckpt)
-
-
-def raise_mismatch(path, saved: int, configured: int):
-    from ..errors import ClrefractError
-
-    raise ClrefractError(
-        f"{path}: checkpoint has {saved} parameters, the configured field has {configured}"
-    )
