@@ -7,7 +7,7 @@ from dataclasses import fields
 
 import pytest
 
-from clrefract.cli import _cmd_fit, build_parser
+from clrefract.cli import build_parser
 from clrefract.fit import FitConfig
 from clrefract.fit.config import CHOICES
 from clrefract.fit.kinds import KINDS
@@ -54,7 +54,7 @@ def test_fit_flags_become_the_config(monkeypatch):
     import clrefract.fit as fit
 
     monkeypatch.setattr(fit, "run_fit", fake_run)
-    assert _cmd_fit(args) == 0
+    assert args.func(args) == 0  # the fit command, its run stubbed
     cfg = seen["cfg"]
     assert (cfg.keep_growth, cfg.line_steps, cfg.size_search) == (5.0, (0.01, 0.03), False)
     # flags not given leave the defaults (and the kind's and optimiser's)
