@@ -10,13 +10,10 @@ from clrefract.baselines.volume import StraightRenderer
 from clrefract.fields.base import Box
 
 
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    from clrefract.synth import MakeOptions, make_dataset
-
-    root = tmp_path_factory.mktemp("data") / "sphere"
-    make_dataset("sphere", root, MakeOptions(views=12, res=24, env_width=256, volume_res=16))
-    return root
+@pytest.fixture
+def tiny(sphere_12x24):
+    """The 12-view 24 x 24 sphere that tests/conftest.py makes once; read-only."""
+    return sphere_12x24
 
 
 def _rays(n, rng):

@@ -17,15 +17,15 @@ from clrefract.synth import MakeOptions, make_dataset, scene_object
 from clrefract.tracer import Tracer, TraceSettings
 
 
-@pytest.fixture(scope="module")
-def sphere_ds(tmp_path_factory):
-    out = tmp_path_factory.mktemp("sphere")
-    info = make_dataset("sphere", out, MakeOptions(views=10, res=24, env_width=256, volume_res=16))
-    return out, info
+@pytest.fixture
+def sphere_ds(sphere_10x24):
+    """The 10-view 24 x 24 sphere that tests/conftest.py makes once; read-only (a test that
+    damages it copies it first)."""
+    return sphere_10x24
 
 
 def test_dataset_has_the_protocol_layout(sphere_ds):
-    root, info = sphere_ds
+    root = sphere_ds
     ds = Dataset(root)
     assert len(ds.train) == 8 and len(ds.test) == 2  # views 0 and 5 are held out
     assert [c.name for c in ds.test] == ["r_000", "r_005"]
@@ -38,8 +38,8 @@ def test_dataset_has_the_protocol_layout(sphere_ds):
     assert check_dataset(root) == []
 
 
-def test_images_are_the_snell_ground_truth_and_read_back_identically(sphere_ds):
-    root, _ = sphere_ds
+def test_images_are_the_snell_ground_truth_and_read_back_identically(sphere_ds, tmp_path):
+    root = sphere_ds
     ds = Dataset(root)
     cam = ds.train[0]
     o, d = cam.rays()
@@ -48,10 +48,9 @@ def test_images_are_the_snell_ground_truth_and_read_back_identically(sphere_ds):
     assert np.array_equal(ds.image(cam), expect)
     # written and read back: identical
     img = ds.image(cam)
-    tmp = root / "copy.exr"
+    tmp = tmp_path / "copy.exr"
     write_exr_rgb(tmp, img)
     assert np.array_equal(read_exr_rgb(tmp), img)
-    tmp.unlink()
 
 
 def _broken(root, tmp_path, name):
@@ -61,7 +60,7 @@ def _broken(root, tmp_path, name):
 
 
 def test_check_names_every_problem(sphere_ds, tmp_path):
-    root, _ = sphere_ds
+    root = sphere_ds
     # a missing frame
     ds1 = _broken(root, tmp_path, "missing")
     (ds1 / "train" / "r_001.exr").unlink()
@@ -96,7 +95,7 @@ def test_check_names_every_problem(sphere_ds, tmp_path):
 
 
 def test_dataset_check_cli_exit_codes(sphere_ds, tmp_path, capsys):
-    root, _ = sphere_ds
+    root = sphere_ds
     assert main(["dataset", "check", str(root)]) == 0
     assert "OK" in capsys.readouterr().out
     assert main(["dataset", "check", str(tmp_path / "nowhere")]) == 2  # bad input
@@ -105,7 +104,7 @@ def test_dataset_check_cli_exit_codes(sphere_ds, tmp_path, capsys):
 
 def test_dataset_check_box_option(sphere_ds, tmp_path, capsys):
     """--box replaces scene.json's box (and the cameras' without one), and check says so."""
-    root, _ = sphere_ds
+    root = sphere_ds
     assert main(["dataset", "check", str(root), "--box", "-30,-30,-30,30,30,30"]) == 0
     out = capsys.readouterr().out
     assert "box from --box: [-30, -30, -30] to [30, 30, 30] mm, margin 4" in out
@@ -126,7 +125,7 @@ def test_dataset_check_box_option(sphere_ds, tmp_path, capsys):
 
 
 def test_render_accepts_a_dataset(sphere_ds, tmp_path):
-    root, _ = sphere_ds
+    root = sphere_ds
     out = tmp_path / "r"
     assert (
         main(["render", "--dataset", str(root), "--field", "sphere:width=0.5", "--out", str(out)])

@@ -15,13 +15,10 @@ from clrefract.imageio import srgb_to_linear
 from clrefract.metrics import chamfer_distance, psnr_ssim
 
 
-@pytest.fixture(scope="module")
-def sphere_data(tmp_path_factory):
-    from clrefract.synth import MakeOptions, make_dataset
-
-    root = tmp_path_factory.mktemp("data") / "sphere"
-    make_dataset("sphere", root, MakeOptions(views=10, res=24, env_width=256, volume_res=16))
-    return root
+@pytest.fixture
+def sphere_data(sphere_10x24):
+    """The 10-view 24 x 24 sphere that tests/conftest.py makes once; read-only."""
+    return sphere_10x24
 
 
 def _truth_run(root, data):

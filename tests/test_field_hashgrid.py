@@ -442,14 +442,14 @@ def test_load_errors_name_the_file(tmp_path, make, message):
     assert str(path) in str(err.value)
 
 
-def test_fit_values_matches_a_sharp_sphere_and_its_normals():
-    """The start of a hash-grid fit: values and gradients of a glass sphere with a 1 mm
-    interface. Fitting the gradient too gives normals within a few degrees at the
-    surface, which values alone (same budget) do not."""
+def _fit_values_errors(points: int, iterations: int, batch: int) -> dict:
+    """Values and gradients of a glass sphere with a 1 mm interface fitted by fit_values
+    (eta alone, and eta with grad eta) on `points` points: each fit's RMS error of eta and
+    the median angle (degrees) of its normals to the true ones at the surface."""
     box = Box((-30.0, -30.0, -30.0), (30.0, 30.0, 30.0), 4.0)
     cfg = HashGridConfig(levels=6, log2_table=14, n_min=8, n_max=64, hidden=16, eta_max=1.6)
     rng = np.random.default_rng(3)
-    pts = rng.uniform(-26, 26, (60_000, 3))
+    pts = rng.uniform(-26, 26, (points, 3))
     r = np.linalg.norm(pts, axis=1)
     s = 1 / (1 + np.exp((r - 15) / 0.25))
     eta = 1 + 0.5 * s
@@ -458,12 +458,32 @@ def test_fit_values_matches_a_sharp_sphere_and_its_normals():
     errs = {}
     for name, g in (("values", None), ("gradients", grad)):
         f = HashGridField(cfg, box, seed=0)
-        rms = f.fit_values(pts, eta, g, scale=1.0, iterations=300, batch=4096)
+        rms = f.fit_values(pts, eta, g, scale=1.0, iterations=iterations, batch=batch)
         ge = f.eval(pts[surface])[1]
         cos = np.sum(ge * grad[surface], 1) / (
             np.linalg.norm(ge, axis=1) * np.linalg.norm(grad[surface], axis=1)
         )
         errs[name] = (rms, float(np.degrees(np.median(np.arccos(np.clip(cos, -1, 1))))))
+    return errs
+
+
+def test_fit_values_on_a_small_budget_learns_the_sphere_and_its_normals_better_with_gradients():
+    """The benchmark below on a third of its points and an eighth of its samples (half the
+    steps of a quarter of the batch; seconds): from an RMS error of eta of 0.154 (eta = 1
+    everywhere), the fit with gradients comes within 0.03 (measured 0.015), its normals
+    within 10 degrees (7.1), under 0.7 of the angle of values alone (15.2)."""
+    errs = _fit_values_errors(20_000, 150, 1024)
+    assert errs["gradients"][0] < 0.03, errs
+    assert errs["gradients"][1] < 10.0, errs
+    assert errs["gradients"][1] < 0.7 * errs["values"][1], errs
+
+
+@pytest.mark.benchmark  # about 80 s; test_fit_values_on_a_small_budget_learns_the_sphere...
+def test_fit_values_matches_a_sharp_sphere_and_its_normals():
+    """The start of a hash-grid fit: values and gradients of a glass sphere with a 1 mm
+    interface. Fitting the gradient too gives normals within a few degrees at the
+    surface, which values alone (same budget) do not."""
+    errs = _fit_values_errors(60_000, 300, 4096)
     assert errs["gradients"][0] < 0.03, errs
     assert errs["gradients"][1] < 5.0, errs
     assert errs["gradients"][1] < errs["values"][1], errs

@@ -12,11 +12,10 @@ from clrefract.hull import hull_distance, mask_distance, refraction_mask, visual
 from clrefract.synth import MakeOptions, make_dataset
 
 
-@pytest.fixture(scope="module")
-def sphere_dataset(tmp_path_factory):
-    out = tmp_path_factory.mktemp("sphere")
-    make_dataset("sphere", out, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
-    return out
+@pytest.fixture
+def sphere_dataset(sphere_25x48):
+    """The 25-view 48 x 48 sphere that tests/conftest.py makes once; read-only."""
+    return sphere_25x48
 
 
 def test_mask_distance_is_signed_pixels():

@@ -38,9 +38,7 @@ RESUMED = {
 
 
 @pytest.mark.parametrize("name", sorted(RESUMED))
-def test_an_interrupted_run_of_the_earlier_version_resumes_to_its_figures(
-    sphere16, tmp_path, name
-):
+def test_an_interrupted_run_of_the_earlier_version_resumes_to_its_figures(sphere16, tmp_path, name):
     run = tmp_path / name
     shutil.copytree(RUNS / name, run)
     result = prepare_fit(sphere16, run, None, resume=True).run()
