@@ -329,7 +329,9 @@ def test_fit_steps_match_without_skipping(sphere_data, tmp_path, kind):
         assert b["steps_per_ray"] < a["steps_per_ray"] * 0.8
 
 
-@pytest.mark.parametrize("refit", ["best", "step"])
+# "best" traces the same start search again (a minute and a half); its validation on the
+# level set is that of the line-search tests
+@pytest.mark.parametrize("refit", [pytest.param("best", marks=pytest.mark.benchmark), "step"])
 def test_a_hash_grid_fit_skips_on_its_level_set_alone(sphere_data, tmp_path, refit):
     """From the hull, the start search and the line search trace the level set the hash
     grid follows: those rays skip empty space, the hash grid's own do not. In float64 the
