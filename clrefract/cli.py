@@ -1,18 +1,114 @@
 """clrefract: recover index-of-refraction fields from photographs through curved rays.
 
-Commands: devices, render, dataset make, dataset import, dataset check, fit, eval, bench."""
+Commands: devices, render, dataset make, dataset import, dataset check, fit, eval, report,
+table, bench."""
 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
+import logging
 import math
+import re
 import sys
 import time
 from dataclasses import fields
 from pathlib import Path
 
 from .errors import ClrefractError
+
+log = logging.getLogger("clrefract")  # clrefract.log sets it up (without importing tqdm here)
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Help that shows every option's default (where its text does not say it already, and
+    the default is a value: not None, not a switch's off), and a renamed option under its
+    new spelling, its old ones named after its text."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        old = getattr(action, "old_spellings", ())
+        if old:
+            text += f" (formerly {', '.join(old)})"
+        default = action.default
+        if (
+            "(default" in text
+            or default is None
+            or default is argparse.SUPPRESS
+            or isinstance(action, argparse._StoreConstAction | argparse._VersionAction)
+            or (not action.option_strings and action.nargs not in ("?", "*"))
+        ):
+            return text
+        if isinstance(default, list | tuple):
+            default = " ".join(str(v) for v in default)
+        return f"{text} (default: {str(default).replace('%', '%%')})"
+
+    def _format_action_invocation(self, action):
+        old = getattr(action, "old_spellings", ())
+        if old:
+            action = copy.copy(action)
+            action.option_strings = [s for s in action.option_strings if s not in old]
+        return super()._format_action_invocation(action)
+
+
+class _Renamed(argparse._StoreAction):
+    """An option stored under its new spelling (the first) and still taken under its old
+    ones, which say on stderr that they are deprecated."""
+
+    def __init__(self, option_strings, dest, old_spellings=(), **kw):
+        super().__init__(option_strings, dest, **kw)
+        self.old_spellings = tuple(old_spellings)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if option_string in self.old_spellings:
+            print(
+                f"clrefract: warning: {option_string} is deprecated here; "
+                f"use {self.option_strings[0]}",
+                file=sys.stderr,
+            )
+        super().__call__(parser, namespace, values, option_string)
+
+
+class _Commands(argparse._SubParsersAction):
+    """Subcommands that take the global --quiet and --verbose after their name too."""
+
+    def add_parser(self, name, **kw):
+        p = super().add_parser(name, **kw)
+        _add_log_options(p, argparse.SUPPRESS)
+        return p
+
+
+class _Parser(argparse.ArgumentParser):
+    """The command line's parsers: defaults in every help, subcommands as _Commands."""
+
+    def __init__(self, *a, **kw):
+        kw.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*a, **kw)
+
+    def add_subparsers(self, **kw):
+        kw.setdefault("action", _Commands)
+        return super().add_subparsers(**kw)
+
+
+def _add_log_options(p: argparse.ArgumentParser, default) -> None:
+    """-q/--quiet, -v/--verbose; a subcommand's copies default to SUPPRESS, so that they do
+    not undo the same flag given before the subcommand."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=default,
+        help="only warnings and errors: no progress bars, no progress messages",
+    )
+    g.add_argument(
+        "-v",
+        "--verbose",
+        action="store_true",
+        default=default,
+        help="debug messages, and OpenCL compiler warnings and build logs",
+    )
 
 
 def _add_engine_options(p: argparse.ArgumentParser) -> None:
@@ -30,8 +126,18 @@ def _add_engine_options(p: argparse.ArgumentParser) -> None:
         help="integrator step in mm of optical path (default: a fit run's own step, else what "
         "the field's finest feature needs, at most 0.5)",
     )
-    g.add_argument("--integrator", default="rkn4", choices=["rkn4", "rk4", "euler"])
-    g.add_argument("--precision", default="float32", choices=["float32", "float64"])
+    g.add_argument(
+        "--integrator",
+        default="rkn4",
+        choices=["rkn4", "rk4", "euler"],
+        help="ray integrator",
+    )
+    g.add_argument(
+        "--precision",
+        default="float32",
+        choices=["float32", "float64"],
+        help="floating-point precision of the device kernels",
+    )
     g.add_argument(
         "--lanes",
         type=int,
@@ -79,7 +185,11 @@ def _check_render_request(args) -> None:
         check_count("--max-steps", args.max_steps)
     if args.step is not None and not (args.step > 0 and math.isfinite(args.step)):
         raise ClrefractError(f"--step must be a positive number of mm, got {args.step}")
-    if not args.cameras and not args.dataset:
+    if args.orbit is not None:
+        check_count("--orbit", args.orbit, 1, 100_000)
+        if args.cameras:
+            raise ClrefractError("--orbit places its own cameras: drop --cameras")
+    if args.orbit is not None or (not args.cameras and not args.dataset):
         check_count("--views", args.views, 1, 100_000)
         check_count("--res", args.res, 1)
         check_image_size("--res", args.res, args.res)
@@ -91,12 +201,13 @@ def _cmd_render(args) -> int:
     from .cameras import fibonacci_sphere_cameras, frame_stem, load_transforms
     from .envmap import EnvMap
     from .fields import Box
-    from .imageio import ensure_out_dir, write_exr_rgb, write_png_srgb
+    from .imageio import ensure_out_dir, linear_to_srgb, write_exr_rgb, write_png
     from .limits import check_image_size, max_steps_for
-    from .progress import Progress
+    from .log import Progress
     from .render import render_camera
     from .runtime import Runtime
-    from .tracer import Tracer, TraceSettings
+    from .tracer import TraceSettings
+    from .tracing import tracer_for
 
     _check_render_request(args)
     box = Box()
@@ -108,7 +219,9 @@ def _cmd_render(args) -> int:
         box = dataset.box
     field = _field_for_render(args.field, box)
     box = field.tracing_box(box)
-    if args.cameras:
+    if args.orbit is not None:
+        cameras = _orbit(args.orbit, box, args.radius, args.res)
+    elif args.cameras:
         cameras = load_transforms(Path(args.cameras))
     elif dataset is not None:
         cameras = {
@@ -147,23 +260,27 @@ def _cmd_render(args) -> int:
         max_steps=args.max_steps,
         skip_empty=args.skip_empty,
     )
-    tracer = Tracer(field, box, settings, runtime=runtime)
-    print(
+    tracer = tracer_for(field, box, settings, runtime=runtime)
+    log.info(
         f"rendering {len(cameras)} view(s) of {field.kind} on {runtime.info.name} "
-        f"({args.precision}, {tracer.lanes} lanes, {args.integrator}, step {args.step} mm)",
-        file=sys.stderr,
+        f"({args.precision}, {tracer.lanes} lanes, {args.integrator}, step {args.step} mm)"
     )
     bar = Progress(len(cameras), "render", unit="views")
-    summary = []
+    summary, frames = [], []
     for k, cam in enumerate(cameras):
         t0 = time.perf_counter()
         res = render_camera(tracer, cam, envmap)
         dt = time.perf_counter() - t0
         stem = frame_stem(cam, k)
         write_exr_rgb(out / f"{stem}.exr", res.image)
-        write_png_srgb(out / f"{stem}.png", res.image)
+        write_png(out / f"{stem}.png", srgb := linear_to_srgb(res.image))
+        if args.orbit is not None:
+            frames.append(srgb)
         summary.append({"view": stem, "seconds": dt, "steps": res.steps, **res.status_counts})
         bar.update(1, msteps_per_s=res.steps / dt / 1e6)
+    bar.close()
+    if frames:
+        _write_animation(out / "orbit.gif", frames)
     (out / "render.json").write_text(
         json.dumps(
             {
@@ -181,13 +298,38 @@ def _cmd_render(args) -> int:
     )
     trapped = sum(v["trapped"] + v["nonfinite"] for v in summary)
     if trapped:
-        print(
-            f"warning: {trapped} pixel(s) hit the step cap or went non-finite and were "
-            "rendered black; raise --max-steps or lower --step",
-            file=sys.stderr,
+        log.warning(
+            f"{trapped} pixel(s) hit the step cap or went non-finite and were "
+            "rendered black; raise --max-steps or lower --step"
         )
-    print(f"wrote {len(cameras)} view(s) to {out}", file=sys.stderr)
+    log.info(f"wrote {len(cameras)} view(s) to {out}" + (" and orbit.gif" if frames else ""))
     return 0
+
+
+def _orbit(n: int, box, radius: float, res: int) -> list:
+    """A turntable: n cameras on a ring about the box centre's vertical, 20 degrees above
+    it, `radius` mm away, looking at the centre."""
+    import numpy as np
+
+    from .cameras import orbit_cameras
+
+    centre = (np.asarray(box.lo, dtype=float) + np.asarray(box.hi, dtype=float)) / 2
+    cams = orbit_cameras(n, radius=radius, width=res, height=res)
+    for cam in cams:
+        cam.c2w[:3, 3] += centre
+    return cams
+
+
+def _write_animation(path: Path, frames: list) -> None:
+    """An endlessly looping GIF of sRGB frames, 10 a second (imageio)."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    from .imageio import atomic_path
+
+    data = np.stack([np.round(np.clip(f, 0, 1) * 255).astype(np.uint8) for f in frames])
+    with atomic_path(path, suffix=".gif") as tmp:
+        iio.imwrite(tmp, data, extension=".gif", duration=100, loop=0)
 
 
 def _run_step(run: Path) -> float | None:
@@ -272,7 +414,9 @@ def _cmd_dataset_check(args) -> int:
 
 
 def _cmd_fit(args) -> int:
-    from .fit import FitConfig, load_config, run_fit
+    from .fit import FitConfig, FitDiverged, load_config, run_fit
+    from .log import LogStream
+    from .parallel import world
 
     # every FitConfig key is a flag (None: not given); argparse's lists as the config's tuples
     overrides = {
@@ -287,10 +431,42 @@ def _cmd_fit(args) -> int:
     if args.resume:
         _check_resume_flags(Path(args.out), overrides, args.config)
     cfg = load_config(Path(args.config) if args.config else None, overrides)
-    result = run_fit(Path(args.dataset), Path(args.out), cfg, resume=args.resume)
+    run = Path(args.out)
+    try:
+        result = run_fit(Path(args.dataset), run, cfg, resume=args.resume, stream=LogStream())
+    except FitDiverged:
+        if world().root:
+            _write_report(run, Path(args.dataset), cfg.device)  # what it kept, to look at
+        raise
     if not result:
         return 0  # an MPI rank other than 0: rank 0 reports
+    _write_report(run, Path(args.dataset), cfg.device)
     print(json.dumps({k: v for k, v in result.items() if k != "views"}, indent=2))
+    return 0
+
+
+def _write_report(run: Path, dataset: Path | None, device: str | None) -> None:
+    """RUN/report.html at the end of a fit: a report that cannot be made is a warning, as
+    the run itself is whole."""
+    from .report_html import write_html_report
+
+    try:
+        log.info(f"wrote {write_html_report(run, dataset, device=device)}")
+    except Exception as exc:  # noqa: BLE001 - the run is kept whatever the report does
+        log.warning(f"{run / 'report.html'} not written: {str(exc).splitlines()[0]}")
+
+
+def _cmd_report(args) -> int:
+    from .report_html import write_html_report
+
+    run = Path(args.run)
+    path = write_html_report(
+        run,
+        Path(args.dataset) if args.dataset else None,
+        Path(args.out) if args.out else None,
+        device=args.device,
+    )
+    log.info(f"wrote {path}")
     return 0
 
 
@@ -307,7 +483,7 @@ def _check_resume_flags(run: Path, overrides: dict, config: str | None) -> None:
         return  # prepare_fit names the missing run
     saved = load_config(run / "config.toml", {})
     clash = [
-        f"--{k.replace('_', '-')} {v} (the run has {getattr(saved, k)})"
+        f"{_fit_flag(k)} {v} (the run has {getattr(saved, k)})"
         for k, v in overrides.items()
         if v is not None
         and k not in ("device", "iterations", "width")
@@ -393,21 +569,41 @@ def _cmd_bench(args) -> int:
         size = replace(size, fixed=fixed, tols=size.tols if "dopri5" in args.integrators else [])
     out = ensure_out_dir(Path(args.out), "bench folder")
     runtime = Runtime(args.device)
-    print(f"bench on {runtime.info.name}: {len(size.scenes)} scene(s)", file=sys.stderr)
-    rows = run_study(size, runtime, log=lambda line: print(line, file=sys.stderr, flush=True))
+    log.info(f"bench on {runtime.info.name}: {len(size.scenes)} scene(s)")
+    rows = run_study(size, runtime, log=log.info)
     paths = write_study(rows, out)
     print(markdown(rows), end="")
-    print(f"wrote {', '.join(str(p) for p in paths.values())}", file=sys.stderr)
+    log.info(f"wrote {', '.join(str(p) for p in paths.values())}")
     return 0
 
 
-def _add_box_option(p: argparse.ArgumentParser, what: str) -> None:
-    # parsed by dataset.box_values, which names a bad value in one line (exit status 2)
-    p.add_argument("--box", nargs="+", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX", help=f"{what}")
+_BOX_FLAGS = ("--box", "--pose-box")
 
 
-# FitConfig keys whose flag is spelled otherwise (the first name; the key's own also works)
-_FIT_FLAG_NAMES = {"adjoint_growth_max": ("--growth-max", "--adjoint-growth-max")}
+def _add_box_option(p, what: str, names: tuple[str, ...] = ("--box",)) -> None:
+    # parsed by dataset.box_values, which names a bad value in one line (exit status 2);
+    # names: the spelling, then old ones that still work
+    p.add_argument(
+        *names,
+        dest="box",
+        nargs="+",
+        metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
+        help=what,
+        action=_Renamed,
+        old_spellings=names[1:],
+    )
+
+
+# FitConfig keys whose flag is spelled otherwise (the first name; the key's own also works).
+# The grid's resolution is --grid-res and the field's kind --field-kind, as --res is an
+# image's size (render, dataset make) and --field a field spec (render); their keys in
+# config.toml stay `res` and `field`, and --res and --field still work here, deprecated.
+_FIT_FLAG_NAMES = {
+    "adjoint_growth_max": ("--growth-max", "--adjoint-growth-max"),
+    "res": ("--grid-res", "--res"),
+    "field": ("--field-kind", "--field"),
+}
+_FIT_OLD_SPELLINGS = {"res": ("--res",), "field": ("--field",)}
 _FIT_METAVARS = {
     "res_schedule": "RES",
     "grad_sigma": "CELLS",
@@ -425,6 +621,20 @@ def _fit_default(value) -> str:
     return repr(value) if value == "" else str(value)
 
 
+def _fit_flag(key: str) -> str:
+    """The flag of a FitConfig key, as help and messages spell it."""
+    if key in _FIT_OLD_SPELLINGS:
+        return _FIT_FLAG_NAMES[key][0]
+    return "--" + key.replace("_", "-")
+
+
+def _new_fit_spellings(text: str) -> str:
+    """fit/config.py's help texts with the renamed flags' new spellings."""
+    for key, (old,) in _FIT_OLD_SPELLINGS.items():
+        text = re.sub(rf"{old}(?![\w-])", _fit_flag(key), text)
+    return text
+
+
 def _add_fit_options(p: argparse.ArgumentParser) -> None:
     """One flag per FitConfig key, its help text and values from fit/config.py (HELP,
     CHOICES), default None: a flag not given leaves the --config file's value (or the
@@ -435,7 +645,7 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
         "fit settings", "the keys of a --config file (config.toml), which these flags override"
     )
     for f in fields(FitConfig):
-        text = HELP[f.name]
+        text = _new_fit_spellings(HELP[f.name])
         if "(default:" not in text:
             text += f" (default: {_fit_default(f.default)})"
         text = text.replace("%", "%%")
@@ -454,6 +664,8 @@ def _add_fit_options(p: argparse.ArgumentParser) -> None:
             kw["type"] = type(f.default)
         if f.name in CHOICES:
             kw["choices"] = CHOICES[f.name]
+        if f.name in _FIT_OLD_SPELLINGS:
+            kw.update(action=_Renamed, old_spellings=_FIT_OLD_SPELLINGS[f.name])
         g.add_argument(*_FIT_FLAG_NAMES.get(f.name, ("--" + f.name.replace("_", "-"),)), **kw)
 
 
@@ -462,8 +674,8 @@ def _joined_box(argv: list[str]) -> list[str]:
     and is not one number for an option."""
     out: list[str] = []
     for a in argv:
-        if out and out[-1] == "--box" and "," in a:
-            out[-1] = f"--box={a}"
+        if out and out[-1] in _BOX_FLAGS and "," in a:
+            out[-1] = f"{out[-1]}={a}"
         else:
             out.append(a)
     return out
@@ -472,10 +684,11 @@ def _joined_box(argv: list[str]) -> list[str]:
 def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
     """The command line; fit_flags=False leaves out `fit`'s FitConfig flags, whose import
     (the fit package: about 1.5 s) only `fit` needs."""
-    ap = argparse.ArgumentParser(prog="clrefract", description=__doc__)
-    ap.add_argument(
-        "--verbose", action="store_true", help="show OpenCL compiler warnings and build logs"
-    )
+    from .provenance import version
+
+    ap = _Parser(prog="clrefract", description=__doc__)
+    ap.add_argument("--version", action="version", version=f"%(prog)s {version()}")
+    _add_log_options(ap, False)
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("devices", help="list OpenCL platforms and devices")
@@ -503,8 +716,17 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         default=8,
         help="without --cameras: this many views on a Fibonacci sphere",
     )
-    p.add_argument("--res", type=int, default=128, help="without --cameras: image size")
+    p.add_argument(
+        "--res", type=int, default=128, help="without --cameras: image width and height, pixels"
+    )
     p.add_argument("--radius", type=float, default=200.0, help="camera distance in mm")
+    p.add_argument(
+        "--orbit",
+        type=int,
+        metavar="N",
+        help="a turntable instead: N views on a ring around the object (20 degrees above "
+        "it, --radius away), written as frames and as orbit.gif",
+    )
     p.add_argument("--only", type=int, nargs="+", help="render only these view indices")
     p.add_argument("--envmap", help="HDR equirectangular EXR (default: procedural)")
     p.add_argument("--seed", type=int, default=0, help="seed of the procedural environment")
@@ -529,8 +751,8 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         "signed-distance surface); luneburg or plume (graded index)",
     )
     p.add_argument("--out", required=True, help="dataset folder to write")
-    p.add_argument("--views", type=int, default=100)
-    p.add_argument("--res", type=int, default=128, help="image width and height")
+    p.add_argument("--views", type=int, default=100, help="how many views")
+    p.add_argument("--res", type=int, default=128, help="image width and height, pixels")
     p.add_argument("--full", action="store_true", help="the full protocol: 100 views, 800x800")
     p.add_argument("--test-every", type=int, default=5, help="every k-th view is a test view")
     p.add_argument(
@@ -556,7 +778,7 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         help="distance of the cameras from the box centre, mm (outside the 100 mm box)",
     )
     p.add_argument("--fov", type=float, default=30.0, help="vertical field of view, degrees")
-    p.add_argument("--device", default=None)
+    p.add_argument("--device", default=None, help="OpenCL device, as for render")
     p.set_defaults(func=_cmd_dataset_make)
     p = ds.add_parser(
         "import", help="make a dataset folder from a NeRF-synthetic or instant-ngp capture"
@@ -566,12 +788,21 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
     p.add_argument(
         "--scale", type=float, default=1.0, help="millimetres per unit of the camera poses"
     )
+    # --pose-box: in the poses' units, where every other --box is in mm (old name: --box)
     _add_box_option(
         p,
         "the object's box in the poses' units (default: instant-ngp's box where "
         "transforms.json sets aabb_scale, scale or offset, else the region the cameras look at)",
+        ("--pose-box", "--box"),
     )
-    p.add_argument("--eta-range", type=float, nargs=2, default=[1.0, 1.6], metavar=("LO", "HI"))
+    p.add_argument(
+        "--eta-range",
+        type=float,
+        nargs=2,
+        default=[1.0, 1.6],
+        metavar=("LO", "HI"),
+        help="the range of eta the object may hold",
+    )
     p.add_argument("--envmap", help="equirectangular HDR EXR (default: SRC/envmap.exr)")
     p.set_defaults(func=_cmd_dataset_import)
     p = ds.add_parser("check", help="validate a dataset folder and name every problem")
@@ -600,6 +831,20 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
     p.add_argument("--no-figures", action="store_true", help="scores only")
     p.set_defaults(func=_cmd_eval)
 
+    p = sub.add_parser(
+        "report",
+        help="RUN/report.html, one page to open: scores, loss curves, test views beside the "
+        "truth, eta slices, the surface, the settings (`fit` writes it at its end)",
+    )
+    p.add_argument("run", help="run folder (of `clrefract fit`)")
+    p.add_argument(
+        "--dataset",
+        help="dataset folder, for views the run folder lacks (default: the one the run names)",
+    )
+    p.add_argument("--out", help="the page to write (default RUN/report.html)")
+    p.add_argument("--device", default=None, help="OpenCL device, as for render")
+    p.set_defaults(func=_cmd_report)
+
     tab = sub.add_parser(
         "table", help="the paper's Table 1: every method on every scene under a protocol"
     ).add_subparsers(dest="table_command", required=True)
@@ -609,13 +854,15 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, help="folder for runs, shard records and the table")
     p.add_argument("--shard", default="", help="i/n, 0 <= i < n: every n-th run from the i-th")
-    p.add_argument("--scenes", default="sphere,prism,drop")
-    p.add_argument("--methods", default="grid,meridian,synapse,vertexnet")
+    p.add_argument("--scenes", default="sphere,prism,drop", help="comma-separated scenes")
+    p.add_argument(
+        "--methods", default="grid,meridian,synapse,vertexnet", help="comma-separated methods"
+    )
     p.add_argument("--data", help="dataset folder root (default OUT/data)")
     p.set_defaults(func=_cmd_table_run)
     p = tab.add_parser("merge", help="join shard records into the table")
     p.add_argument("folders", nargs="+", help="folders holding shard-*-of-*.json")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="folder for the table")
     p.set_defaults(func=_cmd_table_merge)
 
     from .tradeoff import SCENES
@@ -642,6 +889,11 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = _joined_box(list(sys.argv[1:] if argv is None else argv))
     args = build_parser(fit_flags="fit" in argv).parse_args(argv)
+    from .log import configure
+    from .provenance import begin, end
+
+    configure(quiet=args.quiet, verbose=args.verbose)
+    begin(argv)  # run.json records the command and its start
     if args.verbose:
         from .runtime import set_verbose
 
@@ -654,6 +906,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("clrefract: interrupted", file=sys.stderr)
         return 130
+    finally:
+        end()
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ SCENE_FILE = "scene.json"
 FORMAT = "clrefract-dataset"
 
 
-# scene.json, every key optional (README, "Bringing your own capture"):
+# scene.json, every key optional (docs/formats.md lists them):
 DEFAULT_ETA_RANGE = (1.0, 1.6)  # glass and water lie inside
 DEFAULT_MARGIN = 4.0  # mm; at most a tenth of the box's smallest side
 DEFAULT_HOLDOUT = 8  # one transforms file: every 8th frame is a test view
@@ -550,7 +550,7 @@ def _describe_box(
 
 
 def _describe_footprint(cams, centre, size, notes: list[str]) -> None:
-    """What the photographs resolve at the object, and the grid `fit --res 0` picks for it."""
+    """What the photographs resolve at the object, and the grid `fit --grid-res 0` picks for it."""
     from .resolution import cells_for, pixel_footprint_mm
 
     try:
@@ -558,7 +558,7 @@ def _describe_footprint(cams, centre, size, notes: list[str]) -> None:
     except ClrefractError:
         return  # cameras at the box centre: reported below
     notes.append(
-        f"one pixel spans {foot:.2f} mm at the box centre: `fit --res 0` gives "
+        f"one pixel spans {foot:.2f} mm at the box centre: `fit --grid-res 0` gives "
         f"{cells_for(float(np.max(size)), foot)} cells across the box"
     )
 

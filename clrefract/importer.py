@@ -5,7 +5,7 @@
     instant-ngp / COLMAP:      SRC/transforms.json; every 8th frame becomes a test view, and
                                its aabb_scale, scale and offset give the box (ngp_box)
 Poses are multiplied by --scale into millimetres, frames and masks are copied beside the new
-transforms files, and scene.json records the box (--box, else instant-ngp's, else the region
+transforms files, and scene.json records the box (--pose-box, else instant-ngp's, else the region
 the cameras look at), the index range and where the capture came from. Nothing in an existing
 dataset is replaced.
 """
@@ -132,7 +132,7 @@ def ngp_box(keys: dict, cams: list[Camera], scale: float, where: str) -> tuple[B
             ), f"instant-ngp aabb_scale {a:g}"
     raise ClrefractError(
         f"{where}: instant-ngp's box (scale {keys['scale']}, offset {keys['offset']}, even at "
-        "aabb_scale 1) holds cameras; give the object's box with --box"
+        "aabb_scale 1) holds cameras; give the object's box with --pose-box"
     )
 
 
@@ -166,7 +166,7 @@ def import_capture(
     everyone = cams["train"] + cams["test"]
     ngp = _ngp_keys(single) if single is not None else None
     if box is not None:
-        the_box, box_source = box_of(box, scale), "--box"
+        the_box, box_source = box_of(box, scale, "--pose-box"), "--pose-box"
     elif ngp is not None:
         the_box, box_source = ngp_box(ngp, everyone, scale, str(single))
     else:

@@ -25,19 +25,10 @@ def plot_metrics(metrics_path: Path, out_png: Path) -> None:
     rows = [json.loads(ln) for ln in Path(metrics_path).read_text().splitlines() if ln.strip()]
     if not rows:
         return
-    plt = pyplot()
-    it = [r["iteration"] for r in rows]
-    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
-    ax[0].semilogy(it, [r["loss"] for r in rows], lw=0.8)
-    ax[0].set(xlabel="iteration", ylabel="photometric loss", title="training loss")
-    ax[1].plot(it, [r["psnr"] for r in rows], lw=0.8)
-    ax[1].set(xlabel="iteration", ylabel="PSNR (dB, batch)", title="training PSNR")
-    for a in ax:
-        a.grid(alpha=0.3)
-    fig.tight_layout()
+    fig = metrics_figure(rows)  # with the held-out loss, which picks the field that is kept
     with atomic_path(out_png, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=110)
-    plt.close(fig)
+    pyplot().close(fig)
 
 
 def eta_slices(field, box, res: int = 128):
@@ -225,6 +216,7 @@ def write_start_report(fit, seconds: float) -> dict:
     scores["seconds"] = seconds
     with atomic_path(fit.out / "start.json", suffix=".json") as tmp:
         tmp.write_text(json.dumps(scores, indent=2))
+    fit.out.record_start(fit.runtime.info)  # run.json: version, commit, command, device
     return scores
 
 
@@ -268,4 +260,28 @@ def write_fit_report(fit) -> dict:
         _warn(fit, result)
     with atomic_path(out / "results.json", suffix=".json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))
+    fit.out.record_end(fit.runtime.info)  # run.json: the end time
     return result
+
+
+def metrics_figure(rows: list[dict], best_iteration: int | None = None):
+    """Training loss (per batch) and held-out loss against the iteration, and the batch
+    PSNR; a matplotlib figure."""
+    plt = pyplot()
+    it = [r["iteration"] for r in rows]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    dots = "." if len(rows) < 50 else ""  # a short run's few points show
+    ax[0].semilogy(it, [r["loss"] for r in rows], dots + "-", lw=0.8, label="training (batch)")
+    held = [(r["iteration"], r["val_loss"]) for r in rows if r.get("val_loss") is not None]
+    if held:
+        ax[0].semilogy(*zip(*held), "o-", ms=3, lw=1.0, label="held-out")
+    if best_iteration:
+        ax[0].axvline(best_iteration, color="0.5", ls=":", lw=1, label="kept")
+    ax[0].legend(fontsize=8)
+    ax[0].set(xlabel="iteration", ylabel="photometric loss", title="loss")
+    ax[1].plot(it, [r.get("psnr", np.nan) for r in rows], dots + "-", lw=0.8)
+    ax[1].set(xlabel="iteration", ylabel="PSNR (dB, batch)", title="training PSNR")
+    for a in ax:
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    return fig

@@ -23,8 +23,8 @@ from .family import FAMILY, make_shape
 from .fields.analytic import Blobs, Drop, Luneburg, Prism, Sphere
 from .fields.base import Box
 from .imageio import write_exr_rgb, write_png_srgb
+from .log import Progress
 from .mesh import write_mesh
-from .progress import Progress
 
 SOLIDS = ("sphere", "prism", "drop")
 GRADED = ("luneburg", "plume")

@@ -167,7 +167,7 @@ def voxel_run(ds, tmp_path_factory):
 
 def test_resume_with_another_field_kind(ds, voxel_run, capsys):
     args = ["fit", ds, "--out", voxel_run, "--resume", "--field", "hashgrid"]
-    refused(capsys, args, "--field hashgrid", "voxel")
+    refused(capsys, args, "--field-kind hashgrid", "voxel")
 
 
 def test_resume_cannot_lengthen_an_adam_run(ds, voxel_run, capsys):

@@ -267,25 +267,25 @@ def test_instant_ngp_box_keys_are_honoured(rendered, tmp_path, capsys):
     assert info["box_from"] == "instant-ngp aabb_scale 1"
     assert np.allclose(info["box"]["lo"], [-0.3, -0.25, -0.2])  # no --scale: poses' units
     assert np.allclose(info["box"]["hi"], [0.2, 0.25, 0.3])
-    # --box wins, given as one comma-separated string, in the poses' units
+    # --pose-box wins, given as one comma-separated string, in the poses' units
     args = [
         "--out",
         str(tmp_path / "dbox"),
         "--scale",
         "100",
-        "--box",
+        "--pose-box",
         "-0.3,-0.3,-0.3,0.3,0.3,0.3",
     ]
     assert main(["dataset", "import", str(cap), *args]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["box_from"] == "--box" and np.allclose(info["box"]["hi"], [30, 30, 30])
+    assert info["box_from"] == "--pose-box" and np.allclose(info["box"]["hi"], [30, 30, 30])
     # a bad key, and a cube that holds cameras even at aabb_scale 1, are refused
     tf.write_text(json.dumps({**tj, "scale": -1}))
     assert main(["dataset", "import", str(cap), "--out", str(tmp_path / "bad")]) == 2
     assert "'scale' and 'aabb_scale' must be positive" in capsys.readouterr().err
     tf.write_text(json.dumps({**tj, "scale": 0.1}))
     assert main(["dataset", "import", str(cap), "--out", str(tmp_path / "bad")]) == 2
-    assert "holds cameras; give the object's box with --box" in capsys.readouterr().err
+    assert "holds cameras; give the object's box with --pose-box" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
     # without any of the keys: the region the cameras look at, as before
     tf.write_text(json.dumps({k: v for k, v in tj.items() if k not in NGP_KEYS}))

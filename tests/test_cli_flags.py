@@ -43,11 +43,11 @@ def test_fit_help_shows_every_default():
 def test_fit_flags_become_the_config(monkeypatch):
     args = build_parser().parse_args(
         ["fit", "DATA", "--out", "R", "--keep-growth", "5", "--line-steps", "0.01", "0.03",
-         "--no-size-search", "--field", "levelset", "--optimizer", "line-search"]
+         "--no-size-search", "--field-kind", "levelset", "--optimizer", "line-search"]
     )  # fmt: skip
     seen = {}
 
-    def fake_run(dataset, out, cfg, resume):
+    def fake_run(dataset, out, cfg, resume, stream=None):
         seen["cfg"] = cfg
         return {}
 

@@ -4,7 +4,7 @@ the loss of views they never trained on.
 The scene is a small Luneburg lens (a graded-index sphere, eta from sqrt(2) at the centre
 to 1 at the rim); the start is the hash grid fitted to the same lens shrunk to 0.8 of its
 radius. Glass spheres are not tested here: on them no setting measured so far lowers the
-held-out loss reliably (see README, "Hash grid + MLP").
+held-out loss reliably (docs/design/distillation.md).
 """
 
 import dataclasses

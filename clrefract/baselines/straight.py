@@ -32,8 +32,8 @@ import numpy as np
 from ..errors import ClrefractError
 from ..fields.base import Box
 from ..imageio import atomic_path, ensure_out_dir
+from ..log import Progress
 from ..loss import srgb
-from ..progress import Progress
 from .surface import density_level, density_surface
 from .volume import StraightRenderer, render_view
 

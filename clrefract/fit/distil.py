@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ClrefractError
-from ..progress import Progress
+from ..log import Progress
 
 # fit_to_field scores a solid's fit at every RMS_EVERY-th of its points: 100,000 give its RMS
 # to 1% (a sphere, 300 and 2,000 steps), and a refit after each line-search step spent a

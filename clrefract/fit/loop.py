@@ -10,7 +10,7 @@ import signal
 import threading
 
 from ..errors import ClrefractError
-from ..progress import Progress
+from ..log import Progress
 from .finishes import judge_narrowing
 
 
@@ -26,8 +26,7 @@ class FitDiverged(ClrefractError):
 def train(fit) -> dict:
     """Run `fit` (a trainer.Fit, started or resumed) to its end; its results."""
     cfg = fit.cfg
-    bar = Progress(cfg.iterations, "fit", unit="it", stream=fit.stream)
-    bar.done = fit.it
+    bar = Progress(cfg.iterations, "fit", unit="it", stream=fit.stream, initial=fit.it)
     last_ckpt = fit.it
     try:
         with fit.out.open_metrics() as metrics, StopOnInterrupt() as stop:
@@ -63,6 +62,8 @@ def train(fit) -> dict:
         ) from None
     except FloatingPointError as exc:
         return stop_diverged(fit, str(exc), fit.it + 1)
+    finally:
+        bar.close()  # a run stopped early (patience) leaves its bar short of the total
     fit.save_checkpoint()
     fit.record.update(fit.optimizer.finish(fit))
     fit.record["narrowing"] = judge_narrowing(fit)  # may keep the earlier width's field.npz

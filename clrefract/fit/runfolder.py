@@ -1,7 +1,8 @@
 """The run folder: every file a fit reads and writes, each written whole or not at all.
 
 config.toml        the resolved configuration (`fit --config` reads it back as it is)
-run.json           the field's box and eta_max, the dataset; a narrowed run's mark
+run.json           the field's box and eta_max, the dataset; a narrowed run's mark; where the
+                   run came from: version, commit, command, device, driver, start and end
 checkpoint.npz     parameters, Adam state, the best so far and the iteration
 metrics.jsonl      one JSON line per iteration
 init.json, start.json, field.npz, results.json, loss.png, slices.png, test/, surface.ply
@@ -18,6 +19,7 @@ import numpy as np
 from ..errors import ClrefractError
 from ..fields.base import Box
 from ..imageio import atomic_path
+from ..provenance import command, git_state, now, started, version
 from .config import FitConfig, to_toml
 from .configure import load_config
 
@@ -25,6 +27,18 @@ from .configure import load_config
 RUN_FILES = ("checkpoint.npz", "field.npz", "results.json", "start.json", "run.json")
 # what the start of a new run writes, removed again when the start fails
 START_FILES = ("config.toml", "metrics.jsonl", "init.json", *RUN_FILES)
+# run.json's record of where the run came from, kept when its other keys are rewritten
+PROVENANCE = (
+    "version",
+    "commit",
+    "commit_dirty",
+    "command",
+    "device",
+    "driver",
+    "started",
+    "ended",
+    "resumed",
+)
 
 
 @dataclass
@@ -61,6 +75,8 @@ class RunFolder:
 
     def __init__(self, path: Path):
         self.path = Path(path)
+        self.opened = now()  # the start of this process's work on it, outside the CLI
+        self.begun_here = False  # whether this process started the run (else resumed it)
 
     def __truediv__(self, name: str) -> Path:
         return self.path / name
@@ -91,7 +107,40 @@ class RunFolder:
             return None
 
     def write_meta(self, meta: dict) -> None:
-        self.write_text("run.json", json.dumps(meta, indent=2))
+        old = self.meta() or {}
+        kept = {k: old[k] for k in PROVENANCE if k in old and k not in meta}
+        self.write_text("run.json", json.dumps({**meta, **kept}, indent=2))
+
+    def _session(self, device) -> dict:
+        """This process: version, commit, command line, device (a runtime's DeviceInfo) and
+        when it began."""
+        commit, dirty = git_state()
+        return {
+            "version": version(),
+            "commit": commit,
+            "commit_dirty": dirty,
+            "command": command(),
+            "device": device.name if device is not None else None,
+            "driver": f"{device.platform} {device.driver_version}" if device else None,
+            "started": started(self.opened),
+        }
+
+    def record_start(self, device) -> None:
+        """run.json of a new run gets where it came from (the run's own keys follow)."""
+        self.begun_here = True
+        self.write_meta({**(self.meta() or {}), **self._session(device)})
+
+    def record_end(self, device) -> None:
+        """run.json gets the end time; a run this process resumed (rather than started) also
+        gets the resuming session, under "resumed". Nothing where there is no run.json."""
+        meta = self.meta()
+        if meta is None:
+            return
+        end = now()
+        if not self.begun_here:
+            meta.setdefault("resumed", []).append({**self._session(device), "ended": end})
+        meta["ended"] = end
+        self.write_meta(meta)
 
     def box_and_top(self) -> tuple[Box, float | None]:
         """The field's box and eta_max (None in runs that predate it) that run.json holds."""

@@ -9,7 +9,7 @@ import numpy as np
 
 from .. import start_losses
 from ..errors import ClrefractError
-from ..progress import Progress
+from ..log import Progress
 from .config import to_toml
 from .distil import fit_to_field
 from .kinds import guide_config, make_field
