@@ -38,6 +38,8 @@ class EtaModel:
         self.field, self.box, self.eta_hi = field, box, eta_hi
         self.tracer = run_tracer(field, box, forward_settings(cfg), runtime)
         self.surface_rule = f"marching cubes of eta at {self.level:.4g} (halfway to the index)"
+        if getattr(field, "surface", None) is not None:
+            self.surface_rule = "marching cubes of phi at 0 (the sharp surface)"
 
     @property
     def level(self) -> float:
@@ -55,6 +57,9 @@ class EtaModel:
         return self.eta(pts)
 
     def surface(self, box):
+        own = getattr(self.field, "surface", None)  # a sharp surface's own zero set
+        if own is not None:
+            return own(box)
         return eta_surface(self.field, box, self.level, eval_fn=self.tracer.eval_field)
 
 

@@ -43,4 +43,6 @@ def run_tracer(field, box, settings: TraceSettings, runtime=None) -> Tracer:
     on the device, occupancy.py). On the quick sphere's hash grid the test views render
     3.4x faster; in float64 they come out the same to the bit, in float32 10-16 pixels a
     view stray from float64 with skipping as without."""
-    return Tracer(field, field.tracing_box(box), settings, runtime=runtime)
+    from .tracing import tracer_for
+
+    return tracer_for(field, field.tracing_box(box), settings, runtime=runtime)

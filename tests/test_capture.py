@@ -327,7 +327,16 @@ def test_alpha_is_the_mask_and_a_cut_away_background_is_refused(rendered, tmp_pa
         Dataset(cap).image(Dataset(cap).train[1])
     assert main(["dataset", "check", str(cap)]) == 2
     assert "r_002.png: transparent background" in capsys.readouterr().out
-    args = ["fit", str(cap), "--out", str(tmp_path / "run2"), "--iterations", "1", "--res", "8"]
+    args = [
+        "fit",
+        str(cap),
+        "--out",
+        str(tmp_path / "run2"),
+        "--iterations",
+        "1",
+        "--grid-res",
+        "8",
+    ]
     assert main(args) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "transparent background" in err

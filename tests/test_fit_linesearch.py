@@ -27,7 +27,7 @@ from clrefract.fit import LINE_SEARCH_ITERATIONS, load_config
         (dict(line_steps=(0.01, -0.1)), "line_steps must be positive"),
         (dict(env_blur=2.0), "compares sharp pixels"),
         (dict(block=8), "compares sharp pixels"),
-        (dict(optimizer="sgd"), "optimizer must be 'adam' or 'line-search'"),
+        (dict(optimizer="sgd"), "optimizer must be one of adam, line-search, descent"),
     ],
 )
 def test_line_search_config_is_refused_where_it_cannot_work(overrides, message):

@@ -68,6 +68,10 @@ def load_field_file(path: Path, box: Box | None = None) -> Field:
             from .levelset import LevelSetField
 
             return LevelSetField.load(path)
+        if kind == "interface":
+            from .interface import InterfaceField
+
+            return InterfaceField.load(path)
         if kind == "hashgrid":
             from .hashgrid import HashGridField
 

@@ -95,6 +95,9 @@ class Field:
     # its kernels are checked against eval() once per device and build (device_check.py): a
     # driver has computed them wrong where it computed the others right
     device_checked: bool = False
+    # what traces it (tracing.py): "eikonal" RK steps through a continuous eta, or
+    # "interface" straight segments between refractions at a sharp surface
+    traced_by: str = "eikonal"
 
     def lanes_on(self, runtime, lanes: int) -> int:
         """`lanes`, capped at gpu_lanes on a device that is not a CPU."""

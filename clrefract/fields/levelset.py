@@ -191,7 +191,7 @@ class LevelSetField(Field):
         with atomic_path(path) as tmp, tmp.open("wb") as f:
             np.savez_compressed(
                 f,
-                kind="levelset",
+                kind=self.kind,
                 phi=self.phi,
                 eta=self.eta,
                 width=self.width,

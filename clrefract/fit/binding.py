@@ -40,11 +40,11 @@ def train_settings(cfg: FitConfig, field, step: float = 0.0) -> TraceSettings:
 
 def engine_for(field, box, cfg: FitConfig, runtime, step: float = 0.0):
     """The gradient engine that trains `field`, split over MPI ranks, if any."""
-    from ..gradient import GradientEngine
     from ..parallel import shard
+    from ..tracing import engine_for as field_engine
 
     settings = train_settings(cfg, field, step)
-    engine = GradientEngine(field, box, settings, runtime=runtime, loss_space=cfg.loss)
+    engine = field_engine(field, box, settings, runtime=runtime, loss_space=cfg.loss)
     return shard(engine, cfg.chunks)
 
 

@@ -82,6 +82,10 @@ class FitConfig:
     # moves the level set it was distilled from that way, and is fitted to it (`refit`);
     # it is that fit's default
     optimizer: str = "adam"
+    # "descent" (sharp interfaces): the phi gradient smoothed over descent_sigma mm, scaled so
+    # that no node moves more than lr_phi mm, the index lr_index along its gradient's sign,
+    # both decaying by a cosine to lr_final of the rates
+    descent_sigma: float = 4.0
     keep_growth: float = 10.0
     grad_sigma: tuple = (3.0, 6.0, 12.0)
     line_steps: tuple = (0.003, 0.01, 0.03, 0.1)
@@ -246,7 +250,7 @@ class FitConfig:
                 )
         if self.optimizer not in OPTIMIZERS:
             raise ClrefractError(
-                f"optimizer must be 'adam' or 'line-search', got {self.optimizer!r}"
+                f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {self.optimizer!r}"
             )
         if self.distil_on not in ("device", "host"):
             raise ClrefractError(f"distil_on must be 'device' or 'host', got {self.distil_on!r}")
@@ -260,7 +264,8 @@ class FitConfig:
 # it, as where it depends on the field kind or the optimiser)
 HELP = {
     "field": "voxel: eta on a grid (any medium); levelset: one index inside a sharp surface "
-    "(glass, water: the sharpest fits); hashgrid: hash grid + MLP",
+    "(glass, water) on a ramp of --width; hashgrid: hash grid + MLP; interface: one index inside "
+    "a zero-width surface, traced by Snell's law at each crossing",
     "res": "grid resolution (voxel values or level set); 0: one cell per pixel at the object",
     "res_schedule": "voxel grids: coarse-to-fine resolutions before --res, e.g. 16 32 (the "
     "hull start wants the final grid at once)",
@@ -296,7 +301,9 @@ HELP = {
     "lr_final": "learning rates decay exponentially to this fraction",
     "optimizer": "adam, or line-search (level sets, and hash grids from the hull through their "
     "level set: the rays whose adjoint stays tame, a smoothed shape gradient and the best of "
-    "a few moves along it) (default: adam; a hash grid from the hull line-search)",
+    "a few moves along it), or descent (interfaces: a smoothed, bounded shape step) (default: "
+    "adam; a hash grid from the hull line-search; an interface descent)",
+    "descent_sigma": "descent: the phi gradient's smoothing, mm",
     "keep_growth": "line search: keep the rays whose adjoint grows at most this factor",
     "grad_sigma": "line search: smooth the shape gradient over these scales, cells (each "
     "weighted by its square)",
@@ -370,11 +377,11 @@ HELP = {
 
 
 ADJOINTS = ("continuous", "discrete")
-OPTIMIZERS = ("adam", "line-search")
+OPTIMIZERS = ("adam", "line-search", "descent")
 # keys of a fixed set of values, as `validate`, kinds.KINDS and configure.py check them
 # ("" for output: ramp from the hull, sigmoid from empty space)
 CHOICES = {
-    "field": ("levelset", "voxel", "hashgrid"),
+    "field": ("levelset", "voxel", "hashgrid", "interface"),
     "interp": ("bspline", "smoothstep", "trilinear"),
     "output": ("ramp", "sigmoid"),
     "init": ("hull", "empty"),

@@ -113,6 +113,55 @@ class AdamSteps:
         return {}
 
 
+class SmoothedDescent(AdamSteps):
+    """Gradient descent on a sharp surface. A crossing's gradient reaches only the 64 nodes
+    about it and is noisy from node to node: smoothed over descent_sigma mm, it moves the
+    surface as a whole, each step at most lr_phi mm (Adam's per-node scaling moves the
+    noisiest nodes as far as the rest, and took the test views down). The index moves
+    lr_index a step along its gradient's sign. Both decay by a cosine to lr_final."""
+
+    def step(self, fit) -> dict:
+        from scipy.ndimage import gaussian_filter
+
+        cfg, bound = fit.cfg, fit.bound
+        field = bound.field
+        idx, side = fit.rays.batch(fit.it)
+        t0 = time.perf_counter()
+        r = fit.objective.loss_and_grad(bound.engine, idx, fit.it, side * side)
+        reg, greg = field.regularizer(bound.params)
+        grad = r.grad + cfg.reg * greg
+        if not np.all(np.isfinite(grad)):
+            raise FloatingPointError("non-finite gradient")
+        sigma = cfg.descent_sigma / field.spacing
+        shape = field.phi.shape
+        g = gaussian_filter(grad[:-1].reshape(shape), sigma, mode="nearest").ravel()
+        top = float(np.abs(g).max())
+        rate = cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (
+            1 + np.cos(np.pi * fit.it / cfg.iterations)
+        )
+        if top > 0:
+            bound.params[:-1] -= cfg.lr_phi * rate * g / top
+        bound.params[-1] -= cfg.lr_index * rate * np.sign(grad[-1])
+        fit.kind.project(cfg, bound.params, fit.eta_max, bound.free)
+        field.set_data(bound.params)
+        bound.upload(fit.it, stepped=True)
+        dt = time.perf_counter() - t0
+        fit.it += 1
+        exited = r.status == 0
+        targets = fit.rays.blurred(fit.it - 1)[1]
+        return {
+            "iteration": fit.it,
+            "loss": r.loss,
+            "reg": float(reg),
+            "psnr": psnr_linear_batch(r.radiance[exited], targets[idx][exited]),
+            "rays_per_s": len(idx) / dt,
+            "seconds": dt,
+            "eta": field.eta,
+            "rate": float(rate),
+            "crossing_evals_per_ray": r.steps / len(idx),
+        }
+
+
 class LineSearch(AdamSteps):
     """A level set's line search (linesearch.py); its best level set's size and index are
     searched together at the end (finishes.py). Adam's moments stay in the checkpoint, unused."""
@@ -259,6 +308,8 @@ def _timed(row: dict, t0: float) -> dict:
 def optimizer_for(fit, guide=None):
     """The fit's optimiser: its guide (bound, eta_max) from a start, else from `fit`'s
     checkpoint where it follows one (`guide` = the checkpoint)."""
+    if fit.cfg.optimizer == "descent":
+        return SmoothedDescent(fit)
     if fit.cfg.optimizer != "line-search":
         return AdamSteps(fit)
     if not fit.kind.guided(fit.cfg):

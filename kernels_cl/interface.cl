@@ -1,0 +1,387 @@
+/* Sharp interfaces: a solid of one index eta bounded by the zero set of phi (negative
+ * inside, mm), air outside, inside the box. Rays are straight between surface events; each
+ * crossing is bracketed by sphere tracing (steps |phi| / LIP, LIP a Lipschitz bound of phi
+ * from the host, never below MIN_STEP) and solved by the Illinois method to TOL mm. At a
+ * crossing the ray refracts by Snell's law with the normal grad phi / |grad phi|, or
+ * reflects past the critical angle; at most MAX_EVENTS events (then trapped: black).
+ *
+ * The backward pass retraces a ray, keeping its events (a ray's memory grows with its
+ * crossings, not its length), and reverses them: through Snell's law, the normal (grad phi
+ * at the hit point and its Hessian), and the hit point, differentiated implicitly on
+ * phi(x; theta) = 0. The phi parameters' gradient goes to `grad` by atomic adds, the index's
+ * to one partial per ray.
+ *
+ * Providers of phi (one per build): SDF_GRID, the tricubic B-spline on the node grid of
+ * fields/voxel.py (VOX_NX.. nodes over the box, fd[0..SDF_NODES-1] in C order, eta =
+ * fd[SDF_NODES]); SDF_SPHERE, a sphere fd = (cx, cy, cz, R, eta), the closed-form oracle.
+ * Needs common.h (REAL, atomic_add_real, ST_*), snell_common.h (real3, refract_or_reflect,
+ * box_exit_distance) and the box defines. One ray per work-item: the loops are data
+ * dependent.
+ */
+
+#ifndef MAX_EVENTS
+#define MAX_EVENTS 16
+#endif
+#ifndef MAX_MARCH
+#define MAX_MARCH 4096
+#endif
+
+#if SDF_GRID
+#define SDF_NODES (VOX_NX * VOX_NY * VOX_NZ)
+#define SDF_ETA(fd) ((fd)[SDF_NODES])
+#define SDF_HX (((REAL)BOX_HI_X - (REAL)BOX_LO_X) / (REAL)(VOX_NX - 1))
+#define SDF_HY (((REAL)BOX_HI_Y - (REAL)BOX_LO_Y) / (REAL)(VOX_NY - 1))
+#define SDF_HZ (((REAL)BOX_HI_Z - (REAL)BOX_LO_Z) / (REAL)(VOX_NZ - 1))
+
+/* One axis: cell c, the uniform cubic B-spline weights of nodes c-1 .. c+2 and their first
+ * and second derivatives in x (zero where x is clamped onto the grid), as voxel.py's _axis4. */
+inline int sdf_axis(REAL x, REAL lo, REAL h, int n, REAL *w, REAL *d, REAL *dd) {
+    REAL u = (x - lo) / h;
+    REAL uc = clamp(u, (REAL)0, (REAL)(n - 1));
+    int c = clamp((int)floor(uc), 0, n - 2);
+    REAL t = uc - (REAL)c, s = (REAL)1 - t, t2 = t * t, t3 = t2 * t;
+    const REAL r6 = (REAL)1 / (REAL)6;
+    REAL d1 = u == uc ? (REAL)1 / h : (REAL)0, d2 = d1 / h;
+    w[0] = s * s * s * r6;
+    w[1] = ((REAL)3 * t3 - (REAL)6 * t2 + (REAL)4) * r6;
+    w[2] = ((REAL)-3 * t3 + (REAL)3 * t2 + (REAL)3 * t + (REAL)1) * r6;
+    w[3] = t3 * r6;
+    d[0] = (REAL)-0.5 * s * s * d1;
+    d[1] = ((REAL)1.5 * t2 - (REAL)2 * t) * d1;
+    d[2] = ((REAL)-1.5 * t2 + t + (REAL)0.5) * d1;
+    d[3] = (REAL)0.5 * t2 * d1;
+    dd[0] = s * d2;
+    dd[1] = ((REAL)3 * t - (REAL)2) * d2;
+    dd[2] = ((REAL)1 - (REAL)3 * t) * d2;
+    dd[3] = t * d2;
+    return c;
+}
+
+#define SDF_AXES(x)                                                                     \
+    REAL wx[4], dx[4], ex[4], wy[4], dy[4], ey[4], wz[4], dz[4], ez[4];                 \
+    int cx = sdf_axis((x).x, (REAL)BOX_LO_X, SDF_HX, VOX_NX, wx, dx, ex);               \
+    int cy = sdf_axis((x).y, (REAL)BOX_LO_Y, SDF_HY, VOX_NY, wy, dy, ey);               \
+    int cz = sdf_axis((x).z, (REAL)BOX_LO_Z, SDF_HZ, VOX_NZ, wz, dz, ez);
+#define SDF_NODE(a, b, c)                                                               \
+    ((clamp(cx - 1 + (a), 0, VOX_NX - 1) * VOX_NY + clamp(cy - 1 + (b), 0, VOX_NY - 1)) * \
+         VOX_NZ +                                                                       \
+     clamp(cz - 1 + (c), 0, VOX_NZ - 1))
+
+inline REAL sdf_value(__global const REAL *restrict fd, real3 x) {
+    SDF_AXES(x)
+    REAL f = 0;
+    for (int a = 0; a < 4; ++a) {
+        REAL y0 = 0;
+        for (int b = 0; b < 4; ++b) {
+            REAL zc = 0;
+            for (int c = 0; c < 4; ++c) zc += fd[SDF_NODE(a, b, c)] * wz[c];
+            y0 += wy[b] * zc;
+        }
+        f += wx[a] * y0;
+    }
+    return f;
+}
+
+/* phi, its gradient and its Hessian h = (xx, yy, zz, xy, xz, yz). */
+inline REAL sdf_eval(__global const REAL *restrict fd, real3 x, real3 *g, REAL *h) {
+    SDF_AXES(x)
+    REAL f = 0, gx = 0, gy = 0, gz = 0;
+    for (int k = 0; k < 6; ++k) h[k] = 0;
+    for (int a = 0; a < 4; ++a) {
+        REAL y0 = 0, y1 = 0, y2 = 0, y11 = 0, y12 = 0, y22 = 0;
+        for (int b = 0; b < 4; ++b) {
+            REAL zc = 0, zd = 0, ze = 0;
+            for (int c = 0; c < 4; ++c) {
+                REAL q = fd[SDF_NODE(a, b, c)];
+                zc += q * wz[c];
+                zd += q * dz[c];
+                ze += q * ez[c];
+            }
+            y0 += wy[b] * zc;
+            y1 += dy[b] * zc;
+            y2 += wy[b] * zd;
+            y11 += ey[b] * zc;
+            y12 += dy[b] * zd;
+            y22 += wy[b] * ze;
+        }
+        f += wx[a] * y0;
+        gx += dx[a] * y0;
+        gy += wx[a] * y1;
+        gz += wx[a] * y2;
+        h[0] += ex[a] * y0;
+        h[1] += wx[a] * y11;
+        h[2] += wx[a] * y22;
+        h[3] += dx[a] * y1;
+        h[4] += dx[a] * y2;
+        h[5] += wx[a] * y12;
+    }
+    *g = r3(gx, gy, gz);
+    return f;
+}
+
+/* grad += af dphi/dtheta + ag . dgrad(phi)/dtheta at x. */
+inline void sdf_splat(__global const REAL *restrict fd, __global REAL *grad, real3 x, REAL af,
+                      real3 ag) {
+    SDF_AXES(x)
+    for (int a = 0; a < 4; ++a)
+        for (int b = 0; b < 4; ++b)
+            for (int c = 0; c < 4; ++c) {
+                REAL v = af * wx[a] * wy[b] * wz[c] + ag.x * dx[a] * wy[b] * wz[c] +
+                         ag.y * wx[a] * dy[b] * wz[c] + ag.z * wx[a] * wy[b] * dz[c];
+                if (v != (REAL)0) atomic_add_real(grad + SDF_NODE(a, b, c), v);
+            }
+}
+#endif
+
+#if SDF_SPHERE
+#define SDF_ETA(fd) ((fd)[4])
+inline REAL sdf_value(__global const REAL *restrict fd, real3 x) {
+    real3 r = x - r3(fd[0], fd[1], fd[2]);
+    return sqrt(dot(r, r)) - fd[3];
+}
+
+inline REAL sdf_eval(__global const REAL *restrict fd, real3 x, real3 *g, REAL *h) {
+    real3 r = x - r3(fd[0], fd[1], fd[2]);
+    REAL l = sqrt(dot(r, r));
+    real3 u = r / l;
+    *g = u;
+    h[0] = ((REAL)1 - u.x * u.x) / l;
+    h[1] = ((REAL)1 - u.y * u.y) / l;
+    h[2] = ((REAL)1 - u.z * u.z) / l;
+    h[3] = -u.x * u.y / l;
+    h[4] = -u.x * u.z / l;
+    h[5] = -u.y * u.z / l;
+    return l - fd[3];
+}
+
+/* phi = |x - c| - R: dphi/dc = -u, dphi/dR = -1, dgrad/dc = -Hess, dgrad/dR = 0. */
+inline void sdf_splat(__global const REAL *restrict fd, __global REAL *grad, real3 x, REAL af,
+                      real3 ag) {
+    REAL h[6];
+    real3 u;
+    sdf_eval(fd, x, &u, h);
+    atomic_add_real(grad + 0, -af * u.x - (h[0] * ag.x + h[3] * ag.y + h[4] * ag.z));
+    atomic_add_real(grad + 1, -af * u.y - (h[3] * ag.x + h[1] * ag.y + h[5] * ag.z));
+    atomic_add_real(grad + 2, -af * u.z - (h[4] * ag.x + h[5] * ag.y + h[2] * ag.z));
+    atomic_add_real(grad + 3, -af);
+}
+#endif
+
+/* Hessian (xx, yy, zz, xy, xz, yz) times v. */
+inline real3 hess_mul(const REAL *h, real3 v) {
+    return r3(h[0] * v.x + h[3] * v.y + h[4] * v.z, h[3] * v.x + h[1] * v.y + h[5] * v.z,
+              h[4] * v.x + h[5] * v.y + h[2] * v.z);
+}
+
+/* Where phi, seen from side s (+1 outside, -1 inside), first turns <= 0 along o + t d for t
+ * in [t, t_hi]: 1 with the root in *tc, 0 if it does not, -1 past the march cap. */
+inline int sdf_cross(__global const REAL *restrict fd, real3 o, real3 d, REAL t, REAL t_hi,
+                     REAL s, REAL lip, int *work, REAL *tc) {
+    REAL f = s * sdf_value(fd, o + t * d);
+    for (int k = 0; k < MAX_MARCH; ++k) {
+        if (f <= (REAL)0) { /* started on the far side: within MIN_STEP of the last event */
+            *tc = t;
+            return 1;
+        }
+        REAL tn = fmin(t + fmax(f / lip, (REAL)MIN_STEP), t_hi);
+        REAL fn = s * sdf_value(fd, o + tn * d);
+        ++*work;
+        if (fn <= (REAL)0) {
+            /* Illinois: regula falsi that halves the weight of a side kept twice */
+            REAL a = t, b = tn, fa = f, fb = fn;
+            int side = 0;
+            for (int it = 0; it < 200 && b - a > (REAL)TOL; ++it) {
+                REAL m = (a * fb - b * fa) / (fb - fa);
+                if (!(m > a && m < b)) m = (REAL)0.5 * (a + b);
+                REAL fm = s * sdf_value(fd, o + m * d);
+                ++*work;
+                if (fm > (REAL)0) {
+                    a = m;
+                    fa = fm;
+                    if (side == -1) fb *= (REAL)0.5;
+                    side = -1;
+                } else {
+                    b = m;
+                    fb = fm;
+                    if (side == 1) fa *= (REAL)0.5;
+                    side = 1;
+                }
+            }
+            *tc = (REAL)0.5 * (a + b);
+            return 1;
+        }
+        if (tn >= t_hi) return 0;
+        t = tn;
+        f = fn;
+    }
+    return -1;
+}
+
+/* Distance along d to the box from outside (0 inside), or -1 when the line misses it. */
+inline REAL box_entry_distance(real3 p, real3 d) {
+    REAL lo[3] = {(REAL)BOX_LO_X, (REAL)BOX_LO_Y, (REAL)BOX_LO_Z};
+    REAL hi[3] = {(REAL)BOX_HI_X, (REAL)BOX_HI_Y, (REAL)BOX_HI_Z};
+    REAL pc[3] = {p.x, p.y, p.z}, dc[3] = {d.x, d.y, d.z};
+    REAL tn = (REAL)0, tf = (REAL)1e30;
+    for (int j = 0; j < 3; j++) {
+        if (dc[j] == (REAL)0) {
+            if (pc[j] < lo[j] || pc[j] > hi[j]) return (REAL)-1;
+            continue;
+        }
+        REAL t1 = (lo[j] - pc[j]) / dc[j], t2 = (hi[j] - pc[j]) / dc[j];
+        tn = fmax(tn, fmin(t1, t2));
+        tf = fmin(tf, fmax(t1, t2));
+    }
+    return tn < tf ? tn : (REAL)-1;
+}
+
+/* One ray from o along unit d: its status, exit point and direction, event count and march
+ * work; the events (point, incoming direction, inside before it) into ex/ed/ein. */
+inline int sdf_path(__global const REAL *restrict fd, REAL lip, real3 o, real3 d, real3 *pos,
+                    real3 *dir, int *nev, int *work, real3 *ex, real3 *ed, int *ein) {
+    *nev = 0;
+    *pos = o;
+    *dir = d;
+    REAL t0 = box_entry_distance(o, d);
+    if (t0 < (REAL)0) return ST_MISSED;
+    const REAL eta = SDF_ETA(fd);
+    real3 p = o + t0 * d;
+    int inside = 0, ev = 0;
+    REAL start = 0;
+    if (sdf_value(fd, p) <= (REAL)0) return ST_TRAPPED; /* the solid reaches the box wall */
+    for (;;) {
+        *nev = ev;
+        REAL t_hi = box_exit_distance(p, d), tc;
+        int h = sdf_cross(fd, p, d, start, t_hi, inside ? (REAL)-1 : (REAL)1, lip, work, &tc);
+        if (h < 0) return ST_TRAPPED;
+        if (h == 0) {
+            *dir = d;
+            *pos = p + t_hi * d;
+            return inside ? ST_NONFINITE : ST_EXITED;
+        }
+        if (ev >= MAX_EVENTS) return ST_TRAPPED;
+        real3 x = p + tc * d, g;
+        REAL hs[6];
+        sdf_eval(fd, x, &g, hs);
+        real3 nrm = unit3(g);
+        real3 dn = refract_or_reflect(d, nrm, inside, eta);
+        if (!finite3(x) || !finite3(dn)) return ST_NONFINITE;
+        ex[ev] = x;
+        ed[ev] = d;
+        ein[ev] = inside;
+        ++ev;
+        inside = dot(dn, nrm) < (REAL)0;
+        p = x;
+        d = dn;
+        start = (REAL)OFFSET / fmax(fabs(dot(dn, nrm)), (REAL)1e-3);
+    }
+}
+
+__kernel void interface_trace(__global const REAL *restrict fd, const REAL lip, const int n,
+                              __global const REAL *ox, __global const REAL *oy,
+                              __global const REAL *oz, __global const REAL *dx,
+                              __global const REAL *dy, __global const REAL *dz,
+                              __global REAL *px, __global REAL *py, __global REAL *pz,
+                              __global REAL *vx, __global REAL *vy, __global REAL *vz,
+                              __global int *status, __global int *events,
+                              __global int *work) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    real3 ex[MAX_EVENTS], ed[MAX_EVENTS], pos, dir;
+    int ein[MAX_EVENTS], nev, w = 0;
+    real3 o = r3(ox[i], oy[i], oz[i]), d = unit3(r3(dx[i], dy[i], dz[i]));
+    int st = sdf_path(fd, lip, o, d, &pos, &dir, &nev, &w, ex, ed, ein);
+    px[i] = pos.x;
+    py[i] = pos.y;
+    pz[i] = pos.z;
+    vx[i] = dir.x;
+    vy[i] = dir.y;
+    vz[i] = dir.z;
+    status[i] = st;
+    events[i] = nev;
+    work[i] = w;
+}
+
+/* The adjoint of one ray's exit direction (mu = dJ/d dir) back to phi's parameters (grad,
+ * atomic adds) and the index (geta[i]). */
+__kernel void interface_adjoint(__global const REAL *restrict fd, const REAL lip, const int n,
+                                __global const REAL *ox, __global const REAL *oy,
+                                __global const REAL *oz, __global const REAL *dx,
+                                __global const REAL *dy, __global const REAL *dz,
+                                __global const REAL *mux, __global const REAL *muy,
+                                __global const REAL *muz, __global REAL *grad,
+                                __global REAL *geta) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    real3 ex[MAX_EVENTS], ed[MAX_EVENTS], pos, dir;
+    int ein[MAX_EVENTS], nev, w = 0;
+    real3 o = r3(ox[i], oy[i], oz[i]), d0 = unit3(r3(dx[i], dy[i], dz[i]));
+    int st = sdf_path(fd, lip, o, d0, &pos, &dir, &nev, &w, ex, ed, ein);
+    REAL aeta = 0;
+    real3 ad = r3(mux[i], muy[i], muz[i]), ax = r3(0, 0, 0);
+    if (st != ST_EXITED) nev = 0;
+    const REAL eta = SDF_ETA(fd);
+#ifdef ADJ_MIN_COS /* grazing rays carry no gradient (interface.py, GRAZING_COS) */
+    for (int k = 0; k < nev; ++k) {
+        real3 g;
+        REAL hs[6];
+        sdf_eval(fd, ex[k], &g, hs);
+        if (fabs(dot(g, ed[k])) < (REAL)ADJ_MIN_COS * sqrt(dot(g, g))) nev = 0;
+    }
+#endif
+    for (int k = nev - 1; k >= 0; --k) {
+        real3 x = ex[k], d = ed[k], g;
+        REAL hs[6];
+        sdf_eval(fd, x, &g, hs);
+        REAL gn = sqrt(dot(g, g));
+        real3 nrm = g / gn;
+        REAL sg = dot(d, nrm) < (REAL)0 ? (REAL)1 : (REAL)-1;
+        real3 m = sg * nrm;
+        REAL c = -dot(d, m);
+        REAL r = ein[k] ? eta : (REAL)1 / eta;
+        REAL k2 = (REAL)1 - r * r * ((REAL)1 - c * c);
+        real3 a = ad, a_d, a_m;
+        REAL a_c;
+        if (k2 < (REAL)0) { /* reflection: d' = d + 2 c m */
+            a_d = a;
+            a_m = (REAL)2 * c * a;
+            a_c = (REAL)2 * dot(a, m);
+        } else { /* refraction: d' = r d + (r c - sqrt(k2)) m */
+            REAL sk = sqrt(k2), s1 = dot(a, m);
+            a_d = r * a;
+            a_m = (r * c - sk) * a;
+            REAL a_k = -s1 / ((REAL)2 * sk);
+            REAL a_r = dot(a, d) + s1 * c - a_k * (REAL)2 * r * ((REAL)1 - c * c);
+            a_c = s1 * r + a_k * (REAL)2 * r * r * c;
+            aeta += a_r * (ein[k] ? (REAL)1 : (REAL)-1 / (eta * eta));
+        }
+        a_d -= a_c * m; /* c = -d . m */
+        a_m -= a_c * d;
+        real3 a_n = sg * a_m;
+        real3 a_g = (a_n - nrm * dot(nrm, a_n)) / gn; /* n = g / |g| */
+        real3 a_x = ax + hess_mul(hs, a_g);           /* g = grad phi(x) */
+        /* x = p + t d on phi(x) = 0: dx = P (dp + t dd) - d dphi / (g . d) */
+        REAL s2 = dot(d, a_x) / dot(g, d);
+        real3 a_p = a_x - s2 * g;
+        REAL t = k > 0 ? dot(x - ex[k - 1], d) : (REAL)0;
+        sdf_splat(fd, grad, x, -s2, a_g);
+        ad = a_d + t * a_p;
+        ax = a_p;
+    }
+    geta[i] = aeta;
+}
+
+/* phi and its gradient at points (the device check against the NumPy reference). */
+__kernel void interface_eval(__global const REAL *restrict fd, const int n,
+                             __global const REAL *x, __global const REAL *y,
+                             __global const REAL *z, __global REAL *phi, __global REAL *gx,
+                             __global REAL *gy, __global REAL *gz) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    real3 g;
+    REAL hs[6];
+    phi[i] = sdf_eval(fd, r3(x[i], y[i], z[i]), &g, hs);
+    gx[i] = g.x;
+    gy[i] = g.y;
+    gz[i] = g.z;
+}
