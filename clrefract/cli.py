@@ -413,6 +413,12 @@ def _cmd_dataset_check(args) -> int:
     return 2 if problems else 0  # bad input, as everywhere
 
 
+def _config_names_field(path) -> bool:
+    from .fit.config import read_toml
+
+    return path is not None and "field" in read_toml(Path(path))
+
+
 def _cmd_fit(args) -> int:
     from .fit import FitConfig, FitDiverged, load_config, run_fit
     from .log import LogStream
@@ -430,6 +436,8 @@ def _cmd_fit(args) -> int:
         overrides["box"] = tuple(box_values(args.box))
     if args.resume:
         _check_resume_flags(Path(args.out), overrides, args.config)
+    elif overrides["field"] is None and not _config_names_field(args.config):
+        overrides["field"] = "auto"  # the model is picked from the data at the start
     cfg = load_config(Path(args.config) if args.config else None, overrides)
     run = Path(args.out)
     try:
@@ -856,7 +864,9 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
     p.add_argument("--shard", default="", help="i/n, 0 <= i < n: every n-th run from the i-th")
     p.add_argument("--scenes", default="sphere,prism,drop", help="comma-separated scenes")
     p.add_argument(
-        "--methods", default="grid,meridian,synapse,vertexnet", help="comma-separated methods"
+        "--methods",
+        default="grid,meridian,synapse,vertexnet,interface",
+        help="comma-separated methods",
     )
     p.add_argument("--data", help="dataset folder root (default OUT/data)")
     p.set_defaults(func=_cmd_table_run)

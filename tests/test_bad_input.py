@@ -14,7 +14,8 @@ from clrefract.cli import main
 from clrefract.imageio import read_exr_rgb, write_exr_rgb
 from clrefract.synth import MakeOptions, make_dataset
 
-TINY_FIT = ["--iterations", "2", "--res", "8", "--step", "4", "--test-views", "1"]
+TINY_FIT = ["--iterations", "2", "--grid-res", "8", "--step", "4", "--test-views", "1"]
+TINY_FIT += ["--field-kind", "voxel"]  # these runs were written for a voxel grid
 
 
 @pytest.fixture(scope="module")

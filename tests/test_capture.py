@@ -336,6 +336,8 @@ def test_alpha_is_the_mask_and_a_cut_away_background_is_refused(rendered, tmp_pa
         "1",
         "--grid-res",
         "8",
+        "--field-kind",
+        "voxel",
     ]
     assert main(args) == 2
     err = capsys.readouterr().err

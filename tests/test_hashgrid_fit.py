@@ -4,6 +4,7 @@ box, and its run folder works like the other fields' (resume, field file, scores
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -49,10 +50,10 @@ def test_hash_grid_starts_from_the_hull_in_the_objects_box(sphere_25x48, tmp_pat
     cfg = _cfg(iterations=2, refit_iterations=100, tighten_hull=False, shell_starts=False)
     fit = prepare_fit(sphere, tmp_path / "run", cfg, stream=log)
     # the search's and the distillation's progress (minutes each on the quick protocol)
-    lines = log.getvalue().splitlines()
+    lines = re.split(r"[\r\n]", log.getvalue())  # tqdm redraws after carriage returns
     total = 1 + search_losses(8, [6])  # the hull's six smoothings
-    assert any(line.startswith("start [") and f" {total}/{total} " in line for line in lines)
-    assert any(line.startswith("distil [") and " 300/300 " in line for line in lines)
+    assert any(line.startswith("start:") and f" {total}/{total} " in line for line in lines)
+    assert any(line.startswith("distil:") and " 300/300 " in line for line in lines)
     info = json.loads((tmp_path / "run" / "init.json").read_text())
     start = json.loads((tmp_path / "run" / "start.json").read_text())
     assert abs(info["eta"] - 1.5) < 0.06, info
@@ -110,10 +111,10 @@ def test_a_small_hash_grid_starts_from_the_hull(sphere_12x24, tmp_path):
         test_views=1,
     )
     fit = prepare_fit(sphere_12x24, tmp_path / "run", cfg, stream=log)
-    lines = log.getvalue().splitlines()
+    lines = re.split(r"[\r\n]", log.getvalue())  # tqdm redraws after carriage returns
     total = 1 + search_losses(8, [6])
-    assert any(line.startswith("start [") and f" {total}/{total} " in line for line in lines)
-    assert any(line.startswith("distil [") and " 50/50 " in line for line in lines)
+    assert any(line.startswith("start:") and f" {total}/{total} " in line for line in lines)
+    assert any(line.startswith("distil:") and " 50/50 " in line for line in lines)
     info = json.loads((tmp_path / "run" / "init.json").read_text())
     start = json.loads((tmp_path / "run" / "start.json").read_text())
     assert abs(info["eta"] - 1.5) < 0.2, info

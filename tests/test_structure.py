@@ -92,7 +92,7 @@ def test_no_module_imports_another_modules_private_name():
     assert not bad, "private names imported from another module:\n" + "\n".join(bad)
 
 
-KINDS = {"voxel", "levelset", "hashgrid"}
+KINDS = {"voxel", "levelset", "hashgrid", "interface", "auto"}
 
 
 def names_compared(node: ast.Compare) -> set[str]:

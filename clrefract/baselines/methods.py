@@ -1,11 +1,15 @@
-"""The four methods of the paper's Table 1 by name, each run the same way on a dataset.
+"""The four methods of the paper's Table 1 by name, and clrefract's interface model as a fifth
+row beside them, each run the same way on a dataset.
 
 - grid: the paper's "Grid-based refraction": clrefract's voxel fit (same curved-ray tracer,
   same adjoint, same start from the visual hull) on a uniform 128^3 grid with trilinear
   weights; only the representation differs from clrefract's own settings;
 - meridian, synapse: the straight-ray baselines (clrefract.baselines.straight): a neural
   field of density and colour (hash encoding + MLP) and a 128^3 voxel grid;
-- vertexnet: the paper's own method, clrefract's hash grid + MLP fit through curved rays.
+- vertexnet: the paper's own method, clrefract's hash grid + MLP fit through curved rays;
+- interface: not the paper's: a zero-width surface (phi on a B-spline grid) with one index
+  inside, rays refracted by Snell's law at each crossing (fields/interface.py), fitted at its
+  kind's defaults (the descent from the visual hull). It has no figures in the paper.
 
 `settings` (a protocol's, for this method) override the method's defaults; keys that are not
 FitConfig (curved) or StraightConfig (straight) fields are ignored.
@@ -26,7 +30,8 @@ class Method:
     paper_name: str
     rays: str  # "curved" or "straight"
     fit: dict  # FitConfig (curved) or StraightConfig (straight) settings
-    paper: tuple[float, float, float]  # PSNR, SSIM, D_C (mm) of SPEC section 5's Table 1
+    # PSNR, SSIM, D_C (mm) of SPEC section 5's Table 1; None: a row the paper does not have
+    paper: tuple[float, float, float] | None
 
 
 METHODS = {
@@ -50,6 +55,7 @@ METHODS = {
             "synapse", "Synapse-Volumetric", "straight", dict(style="synapse"), (26.89, 0.891, 1.88)
         ),
         Method("vertexnet", "Vertex-Net", "curved", dict(field="hashgrid"), (31.54, 0.942, 0.74)),
+        Method("interface", "Interface (SDF + Snell)", "curved", dict(field="interface"), None),
     )
 }
 

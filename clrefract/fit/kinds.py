@@ -5,13 +5,13 @@ name, as the tracer asks a field for its kernel sources.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 
 from ..errors import ClrefractError
 from ..limits import check_grid, check_table
-from .config import FitConfig
+from .config import FitConfig, coerced
 
 # a line-search step costs tens of seconds (a hash grid's refit included), and the quick
 # sphere's held-out loss still fell at step 15 of 16
@@ -59,6 +59,7 @@ class FieldKind:
     """The defaults, checks, field, step and strategies of one kind of fitted field."""
 
     name = ""
+    candidates: tuple = ()  # kinds an automatic start chooses among (none: this one)
     grid = False  # a node grid of `res` per axis
     interface = False  # a surface, whose step shrinks for glass of a high index
     optimizers = ("adam",)
@@ -392,7 +393,54 @@ class InterfaceKind(LevelSetKind):
                 np.maximum(phi[tuple(sl)], 1e-3, out=phi[tuple(sl)])
 
 
-KINDS = {k.name: k for k in (VoxelKind(), LevelSetKind(), HashGridKind(), InterfaceKind())}
+class AutoKind(FieldKind):
+    """No kind yet: the start tries each candidate, and the run goes on with the one whose
+    start the held-out views prefer (session.choose_model): a sharp surface for glass and
+    water, a grid of eta for a graded medium."""
+
+    name = "auto"
+    candidates = ("interface", "voxel")
+    optimizers = ("adam", "line-search", "descent")
+
+    def defaults(self, items):
+        pass  # each candidate's own, when it is tried
+
+    def usable(self, cfg) -> tuple:
+        """The candidates this configuration can run (an interface starts from the hull)."""
+        ok, refusal = [], None
+        for name in self.candidates:
+            try:
+                KINDS[name].validate(candidate_config(cfg, name))
+                ok.append(name)
+            except ClrefractError as exc:
+                refusal = refusal or exc
+        if not ok:
+            raise refusal
+        return tuple(ok)
+
+    def validate(self, cfg):
+        self.usable(cfg)
+
+    def make(self, cfg, box, eta_max, res):
+        raise ClrefractError("field 'auto' is chosen at the start; it makes no field itself")
+
+
+KINDS = {
+    k.name: k for k in (VoxelKind(), LevelSetKind(), HashGridKind(), InterfaceKind(), AutoKind())
+}
+
+
+def candidate_config(cfg: FitConfig, name: str) -> FitConfig:
+    """An automatic run's configuration for one candidate kind: the values it was given
+    (those off FitConfig's defaults), then that kind's defaults."""
+    items = {
+        f.name: getattr(cfg, f.name)
+        for f in fields(FitConfig)
+        if getattr(cfg, f.name) != f.default and f.name != "field"
+    }
+    items["field"] = name
+    KINDS[name].defaults(items)
+    return coerced(items)
 
 
 def kind_named(name: str) -> FieldKind:

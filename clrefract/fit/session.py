@@ -3,6 +3,7 @@ one, give a line search more steps, read a run's field at its latest checkpoint.
 
 from __future__ import annotations
 
+import shutil
 import sys
 import time
 from dataclasses import replace
@@ -12,7 +13,7 @@ from .. import start_losses
 from ..errors import ClrefractError
 from ..imageio import ensure_out_dir
 from .config import FitConfig
-from .kinds import make_field
+from .kinds import candidate_config, kind_of, make_field
 from .runfolder import START_FILES, RunFolder
 from .trainer import Fit
 
@@ -63,6 +64,8 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
 def start_run(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> Fit:
     from ..report import write_start_report
 
+    if kind_of(cfg).candidates:
+        return choose_model(dataset, folder, cfg, stream)
     fit = Fit(dataset, folder.path, cfg, stream=stream, folder=folder)
     folder.write_config(cfg)
     folder.write_text("metrics.jsonl", "")
@@ -79,6 +82,37 @@ def start_run(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> Fit:
     )
     fit.save_checkpoint()  # a run killed before its first step resumes from its start
     return fit
+
+
+def choose_model(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> Fit:
+    """Start each candidate kind in RUN/candidates/KIND and go on, in RUN, with the one whose
+    start has the lowest held-out loss (the same held-out rays for each); model.json says
+    what each scored."""
+    out = stream or sys.stderr
+    names = kind_of(cfg).usable(cfg)
+    if len(names) == 1:
+        return start_run(dataset, folder, candidate_config(cfg, names[0]), stream)
+    scores = {}
+    for name in names:
+        sub = RunFolder(folder.path / "candidates" / name)
+        ensure_out_dir(sub.path, "run folder")
+        out.write(f"model: starting {name}\n")
+        if not sub.holds_run():  # a candidate started before is taken up
+            start_run(dataset, sub, candidate_config(cfg, name), stream)
+        cand = prepare_fit(dataset, sub.path, None, resume=True, stream=stream)
+        scores[name] = float(cand.held_out_loss())
+    best = min(scores, key=scores.get)
+    for name in START_FILES:
+        src = folder.path / "candidates" / best / name
+        if src.is_file():
+            shutil.copy2(src, folder.path / name)
+    folder.write_json("model.json", {"chosen": best, "held_out_loss": scores})
+    out.write(
+        "model: "
+        + ", ".join(f"{k} held-out loss {v:.5g}" for k, v in scores.items())
+        + f": going on with {best}\n"
+    )
+    return prepare_fit(dataset, folder.path, None, resume=True, stream=stream)
 
 
 def extend_run(out: Path, iterations: int) -> None:
