@@ -225,9 +225,9 @@ def test_an_interface_field_file_round_trips_and_renders_the_same(tmp_path):
 
 def test_a_small_interface_fit_climbs_from_its_hull_start(sphere_12x24, tmp_path):
     """The 24 x 24 glass sphere (9 training views): the interface's hull start, then 300
-    steps of smoothed descent of at most 0.05 mm. The held-out views keep a later step than the start, and
-    the test view gains at least 0.5 dB over the start (measured +0.97, 27.48 -> 28.45 dB,
-    the index from 1.396 towards 1.5)."""
+    steps of smoothed descent of at most 0.05 mm. The held-out views keep a later step than
+    the start, and the test view gains at least 0.5 dB over the start (measured +0.97,
+    27.48 -> 28.45 dB, the index from 1.396 towards 1.5)."""
     import io
     import json
 

@@ -2,7 +2,8 @@
 The same as `clrefract table`:
 
     python tools/table.py run --protocol tiny --out table/tiny [--shard 0/2]
-        [--scenes sphere,prism,drop] [--methods grid,meridian,synapse,vertexnet] [--data DIR]
+        [--scenes sphere,prism,drop] [--methods grid,meridian,synapse,vertexnet,interface]
+        [--data DIR]
     python tools/table.py merge table/tiny-a table/tiny-b --out table/tiny
 
 `run` writes shard-i-of-n.json (one record per run) and, for the whole protocol (no --shard),
