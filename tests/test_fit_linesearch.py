@@ -444,7 +444,7 @@ def test_resume_with_another_width_narrows_a_finished_line_search(sphere_8x24, t
     its best level set searched for size and index at W (results.json says what the search
     did), and judged against the earlier width's field on the held-out views; the earlier
     field stays where it scores better (a 4 mm ramp blurs the 0.5 mm sphere), with its
-    width. An Adam run refuses it."""
+    width."""
     main, run, fit, toml = _one_step_run(sphere_8x24, tmp_path)
     assert load_config(run / "config.toml", {}).width == 1.0
     assert main([*fit, "--resume", "--width", "0.5"]) == 0
@@ -465,10 +465,21 @@ def test_resume_with_another_width_narrows_a_finished_line_search(sphere_8x24, t
     assert load_config(run / "config.toml", {}).width == earlier
     assert abs(result["test_psnr"] - psnr) < 0.05, (result["test_psnr"], psnr)
     assert "narrowed_from" not in json.loads((run / "run.json").read_text())
-    adam = tmp_path / "adam"
-    assert main([*fit[:2], "--out", str(adam), "--field", "levelset", "--res", "16",
-                 "--iterations", "1", "--batch", "1024", "--test-views", "1",
-                 "--config", str(toml)]) == 0  # fmt: skip
-    capsys.readouterr()
-    assert main([*fit[:2], "--out", str(adam), "--resume", "--width", "0.5"]) == 2
-    assert "only a line search's level set" in capsys.readouterr().err
+
+
+def test_resume_with_another_width_refuses_an_adam_run(sphere_8x24, tmp_path, capsys):
+    """Only a line search's level set is narrowed: an Adam run (the checked-in voxel run of
+    tests/data/runs_v0) refuses --width on --resume, in one line, before it fits anything."""
+    import shutil
+    from pathlib import Path
+
+    from clrefract.cli import main
+
+    run = tmp_path / "adam"
+    shutil.copytree(Path(__file__).parent / "data" / "runs_v0" / "voxel_adam", run)
+    before = sorted(p.name for p in run.iterdir())
+    args = ["fit", str(sphere_8x24), "--out", str(run), "--resume", "--width", "0.5"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "only a line search's level set" in err
+    assert sorted(p.name for p in run.iterdir()) == before

@@ -116,16 +116,16 @@ def test_the_kernel_finds_the_crossings_an_independent_march_finds(make):
     inside it; phi and its gradient from the device equal the NumPy spline's."""
     field = make()
     rng = np.random.default_rng(5)
-    o = rng.normal(0, 1, (50, 3))
+    o = rng.normal(0, 1, (30, 3))
     o = 70 * o / np.linalg.norm(o, axis=1, keepdims=True)  # from every side
-    d = rng.uniform(-13, 13, (50, 3)) - o  # towards the edges and corners too
+    d = rng.uniform(-13, 13, (30, 3)) - o  # towards the edges and corners too
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     tr = InterfaceTracer(field, BOX, F64)
     res = tr.trace(o, d)
     st, ref, ev = interface_numpy(field, BOX, o, d)
     assert np.array_equal(res.status, st)
     assert np.array_equal(tr.events, ev)
-    assert (ev > 2).sum() >= 3 if make is cube else (ev >= 2).sum() > 15
+    assert (ev > 2).sum() >= 2 if make is cube else (ev >= 2).sum() > 8
     out = st == Status.EXITED  # a trapped ray renders black, whatever its direction
     angle = np.arccos(np.clip((res.direction[out] * ref[out]).sum(1), -1, 1))
     assert angle.max() < 1e-5, angle.max()  # measured 1e-6 after many corner bounces
