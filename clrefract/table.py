@@ -71,7 +71,7 @@ PROTOCOLS: dict[str, dict] = {
             # interface, about 14 minutes a scene alone on 2 cores (Adam's 100 steps of 4 s
             # kept the start's parameters or crept from them)
             "vertexnet": dict(batch=8192),
-            # the interface kind's own defaults (kinds.INTERFACE_DEFAULTS: 300 descent steps)
+            # the interface kind's own defaults (kinds.INTERFACE_DEFAULTS: its descent's steps)
             "interface": dict(batch=8192),
         },
     },
