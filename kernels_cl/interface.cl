@@ -19,6 +19,9 @@
  * dependent.
  */
 
+/* PoCL may miscompile helpers that take private arrays by pointer unless they are inlined */
+#define SDF_INLINE inline __attribute__((always_inline))
+
 #ifndef MAX_EVENTS
 #define MAX_EVENTS 16
 #endif
@@ -35,7 +38,7 @@
 
 /* One axis: cell c, the uniform cubic B-spline weights of nodes c-1 .. c+2 and their first
  * and second derivatives in x (zero where x is clamped onto the grid), as voxel.py's _axis4. */
-inline int sdf_axis(REAL x, REAL lo, REAL h, int n, REAL *w, REAL *d, REAL *dd) {
+SDF_INLINE int sdf_axis(REAL x, REAL lo, REAL h, int n, REAL *w, REAL *d, REAL *dd) {
     REAL u = (x - lo) / h;
     REAL uc = clamp(u, (REAL)0, (REAL)(n - 1));
     int c = clamp((int)floor(uc), 0, n - 2);
@@ -67,7 +70,7 @@ inline int sdf_axis(REAL x, REAL lo, REAL h, int n, REAL *w, REAL *d, REAL *dd) 
          VOX_NZ +                                                                       \
      clamp(cz - 1 + (c), 0, VOX_NZ - 1))
 
-inline REAL sdf_value(__global const REAL *restrict fd, real3 x) {
+SDF_INLINE REAL sdf_value(__global const REAL *restrict fd, real3 x) {
     SDF_AXES(x)
     REAL f = 0;
     for (int a = 0; a < 4; ++a) {
@@ -83,7 +86,7 @@ inline REAL sdf_value(__global const REAL *restrict fd, real3 x) {
 }
 
 /* phi, its gradient and its Hessian h = (xx, yy, zz, xy, xz, yz). */
-inline REAL sdf_eval(__global const REAL *restrict fd, real3 x, real3 *g, REAL *h) {
+SDF_INLINE REAL sdf_eval(__global const REAL *restrict fd, real3 x, real3 *g, REAL *h) {
     SDF_AXES(x)
     REAL f = 0, gx = 0, gy = 0, gz = 0;
     for (int k = 0; k < 6; ++k) h[k] = 0;
@@ -120,7 +123,7 @@ inline REAL sdf_eval(__global const REAL *restrict fd, real3 x, real3 *g, REAL *
 }
 
 /* grad += af dphi/dtheta + ag . dgrad(phi)/dtheta at x. */
-inline void sdf_splat(__global const REAL *restrict fd, __global REAL *grad, real3 x, REAL af,
+SDF_INLINE void sdf_splat(__global const REAL *restrict fd, __global REAL *grad, real3 x, REAL af,
                       real3 ag) {
     SDF_AXES(x)
     for (int a = 0; a < 4; ++a)
@@ -135,12 +138,12 @@ inline void sdf_splat(__global const REAL *restrict fd, __global REAL *grad, rea
 
 #if SDF_SPHERE
 #define SDF_ETA(fd) ((fd)[4])
-inline REAL sdf_value(__global const REAL *restrict fd, real3 x) {
+SDF_INLINE REAL sdf_value(__global const REAL *restrict fd, real3 x) {
     real3 r = x - r3(fd[0], fd[1], fd[2]);
     return sqrt(dot(r, r)) - fd[3];
 }
 
-inline REAL sdf_eval(__global const REAL *restrict fd, real3 x, real3 *g, REAL *h) {
+SDF_INLINE REAL sdf_eval(__global const REAL *restrict fd, real3 x, real3 *g, REAL *h) {
     real3 r = x - r3(fd[0], fd[1], fd[2]);
     REAL l = sqrt(dot(r, r));
     real3 u = r / l;
@@ -155,7 +158,7 @@ inline REAL sdf_eval(__global const REAL *restrict fd, real3 x, real3 *g, REAL *
 }
 
 /* phi = |x - c| - R: dphi/dc = -u, dphi/dR = -1, dgrad/dc = -Hess, dgrad/dR = 0. */
-inline void sdf_splat(__global const REAL *restrict fd, __global REAL *grad, real3 x, REAL af,
+SDF_INLINE void sdf_splat(__global const REAL *restrict fd, __global REAL *grad, real3 x, REAL af,
                       real3 ag) {
     REAL h[6];
     real3 u;
@@ -168,14 +171,14 @@ inline void sdf_splat(__global const REAL *restrict fd, __global REAL *grad, rea
 #endif
 
 /* Hessian (xx, yy, zz, xy, xz, yz) times v. */
-inline real3 hess_mul(const REAL *h, real3 v) {
+SDF_INLINE real3 hess_mul(const REAL *h, real3 v) {
     return r3(h[0] * v.x + h[3] * v.y + h[4] * v.z, h[3] * v.x + h[1] * v.y + h[5] * v.z,
               h[4] * v.x + h[5] * v.y + h[2] * v.z);
 }
 
 /* Where phi, seen from side s (+1 outside, -1 inside), first turns <= 0 along o + t d for t
  * in [t, t_hi]: 1 with the root in *tc, 0 if it does not, -1 past the march cap. */
-inline int sdf_cross(__global const REAL *restrict fd, real3 o, real3 d, REAL t, REAL t_hi,
+SDF_INLINE int sdf_cross(__global const REAL *restrict fd, real3 o, real3 d, REAL t, REAL t_hi,
                      REAL s, REAL lip, int *work, REAL *tc) {
     REAL f = s * sdf_value(fd, o + t * d);
     for (int k = 0; k < MAX_MARCH; ++k) {
@@ -218,7 +221,7 @@ inline int sdf_cross(__global const REAL *restrict fd, real3 o, real3 d, REAL t,
 }
 
 /* Distance along d to the box from outside (0 inside), or -1 when the line misses it. */
-inline REAL box_entry_distance(real3 p, real3 d) {
+SDF_INLINE REAL box_entry_distance(real3 p, real3 d) {
     REAL lo[3] = {(REAL)BOX_LO_X, (REAL)BOX_LO_Y, (REAL)BOX_LO_Z};
     REAL hi[3] = {(REAL)BOX_HI_X, (REAL)BOX_HI_Y, (REAL)BOX_HI_Z};
     REAL pc[3] = {p.x, p.y, p.z}, dc[3] = {d.x, d.y, d.z};
@@ -237,7 +240,7 @@ inline REAL box_entry_distance(real3 p, real3 d) {
 
 /* One ray from o along unit d: its status, exit point and direction, event count and march
  * work; the events (point, incoming direction, inside before it) into ex/ed/ein. */
-inline int sdf_path(__global const REAL *restrict fd, REAL lip, real3 o, real3 d, real3 *pos,
+SDF_INLINE int sdf_path(__global const REAL *restrict fd, REAL lip, real3 o, real3 d, real3 *pos,
                     real3 *dir, int *nev, int *work, real3 *ex, real3 *ed, int *ein) {
     *nev = 0;
     *pos = o;
