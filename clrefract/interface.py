@@ -18,7 +18,7 @@ from .errors import ClrefractError
 from .fields.base import Box
 from .gradient import GradientResult, traced_loss
 from .runtime import Runtime, default_runtime
-from .tracer import Out, Status, TraceResult, TraceSettings, work_group_size
+from .tracer import Out, Status, TraceResult, TraceSettings, device_args, work_group_size
 
 MAX_EVENTS = 16  # crossings a ray may make before it counts as trapped (renders black)
 MAX_MARCH = 4096  # sphere-tracing steps per segment
@@ -100,17 +100,7 @@ class InterfaceTracer:
         queue, unfinished."""
         cl = self.runtime.cl
         q = queue or self.runtime.queue
-        mf, ctx = cl.mem_flags, self.runtime.context
-        bufs, back = [], []
-        for a in args:
-            if isinstance(a, Out):
-                b = cl.Buffer(ctx, mf.WRITE_ONLY, max(a.array.nbytes, 1))
-                back.append((a.array, b))
-            elif isinstance(a, np.ndarray):
-                b = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
-            else:
-                b = a
-            bufs.append(b)
+        bufs, back = device_args(self.runtime, args)
         items = max(n, 1)
         local = work_group_size(items, self.runtime)
         kernel(

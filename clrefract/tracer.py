@@ -54,6 +54,27 @@ def work_group_size(items: int, runtime: Runtime) -> int | None:
     return g
 
 
+def device_args(runtime: Runtime, args) -> tuple[list, list]:
+    """Kernel arguments on the device: numpy arrays copied in, Out and InOut arrays given
+    buffers, other arguments as they are; and the (array, buffer) pairs to copy back."""
+    cl = runtime.cl
+    mf, ctx = cl.mem_flags, runtime.context
+    bufs, back = [], []
+    for a in args:
+        if isinstance(a, Out):
+            b = cl.Buffer(ctx, mf.WRITE_ONLY, max(a.array.nbytes, 1))
+            back.append((a.array, b))
+        elif isinstance(a, InOut):
+            b = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=a.array)
+            back.append((a.array, b))
+        elif isinstance(a, np.ndarray):
+            b = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+        else:
+            b = a
+        bufs.append(b)
+    return bufs, back
+
+
 def renders_black(status: np.ndarray) -> np.ndarray:
     """Rays that no light reaches the camera along: trapped or non-finite."""
     return (status == Status.TRAPPED) | (status == Status.NONFINITE)
@@ -347,20 +368,7 @@ class Tracer:
         divide n_items), else work_group_size's."""
         cl = self.runtime.cl
         q = queue or self.runtime.queue
-        mf, ctx = cl.mem_flags, self.runtime.context
-        bufs, back = [], []
-        for a in args:
-            if isinstance(a, Out):
-                b = cl.Buffer(ctx, mf.WRITE_ONLY, max(a.array.nbytes, 1))
-                back.append((a.array, b))
-            elif isinstance(a, InOut):
-                b = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=a.array)
-                back.append((a.array, b))
-            elif isinstance(a, np.ndarray):
-                b = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
-            else:
-                b = a
-            bufs.append(b)
+        bufs, back = device_args(self.runtime, args)
         local = local or work_group_size(n_items, self.runtime)
         kernel(q, (n_items,), None if local is None else (local,), self._fp, self._fd, *bufs)
         self.launch_bytes = sum(
