@@ -159,12 +159,14 @@ def test_fit_cli_refuses_to_overwrite_and_renders_the_run(blob_dataset, tmp_path
         str(run),
         "--iterations",
         "4",
-        "--res",
+        "--grid-res",
         "8",
         "--step",
         "2",
         "--test-views",
         "1",
+        "--field-kind",
+        "voxel",  # the model the command line would choose is tested in test_interface
     ]
     assert main(args) == 0
     assert main(args) == 2
