@@ -756,7 +756,8 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         "scene",
         help="the paper's solids sphere, prism, drop (exact Snell ground truth); the family "
         "shapes rounded-cube, cylinder, bowl, two-bodies, vase, random (exact Snell at a "
-        "signed-distance surface); luneburg or plume (graded index)",
+        "signed-distance surface); luneburg, blobs (drawn by --seed), grin-rod, grin-lens or "
+        "plume (graded index)",
     )
     p.add_argument("--out", required=True, help="dataset folder to write")
     p.add_argument("--views", type=int, default=100, help="how many views")
@@ -767,7 +768,7 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         "--seed",
         type=int,
         default=0,
-        help="seed of the procedural environment (and of the shape, for `random`)",
+        help="seed of the procedural environment (and of the shape, for `random` and `blobs`)",
     )
     p.add_argument(
         "--eta", type=float, default=None, help="family shapes: glass index, 1.2 to 1.9 (1.5)"

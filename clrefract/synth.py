@@ -3,8 +3,18 @@
 Solid objects (sphere, prism, drop) are rendered by exact Snell refraction at their analytic
 surfaces (clrefract.snell), the family shapes (rounded cube, cylinder, bowl, two bodies, vase,
 random solids; clrefract.family) by exact Snell refraction at their signed-distance surfaces
-(clrefract.snell_sdf), never by the eikonal tracer that fitting uses; graded-index scenes
-(luneburg, plume) by the eikonal tracer in float64 with a fine step.
+(clrefract.snell_sdf), never by the eikonal tracer that fitting uses; graded-index scenes by
+the eikonal tracer in float64 with a fine step:
+
+- luneburg: the Luneburg lens, radius 20 mm, index sqrt(2) at its centre;
+- blobs: five Gaussian blobs drawn by --seed (amplitudes 0.08-0.16, sigmas 5-8 mm, centres
+  within 16 mm of the box centre): a peak index of about 1.1 to 1.4;
+- grin-rod: a parabolic (Selfoc) rod, index 1.2 on its axis falling to 1 at its radius 12 mm,
+  50 mm long with C2 end caps, its axis tilted 30 degrees from z;
+- grin-lens: an axial graded-index disc, radius 20 mm, 12 mm thick, index 1.4 on its
+  mid-plane falling to 1 at its faces and rim, tilted;
+- plume: a buoyant plume rising along z, eta - 1 about 1e-3 at its 2 mm wide base, widening
+  and fading with height, meandering a little.
 """
 
 from __future__ import annotations
@@ -20,21 +30,22 @@ from .dataset import Scene, write_scene
 from .envmap import EnvMap
 from .errors import ClrefractError
 from .family import FAMILY, make_shape
-from .fields.analytic import Blobs, Drop, Luneburg, Prism, Sphere
+from .fields.analytic import Blobs, Drop, GrinLens, GrinRod, Luneburg, Plume, Prism, Sphere
 from .fields.base import Box
 from .imageio import write_exr_rgb, write_png_srgb
 from .log import Progress
 from .mesh import write_mesh
 
 SOLIDS = ("sphere", "prism", "drop")
-GRADED = ("luneburg", "plume")
+GRADED = ("luneburg", "blobs", "grin-rod", "grin-lens", "plume")
 SCENES = SOLIDS + GRADED + FAMILY
 
 
 def scene_object(name: str, eta: float | None = None, tilt=None, seed: int | None = None):
     """The analytic object of a benchmark scene (its interface width is only used to draw
     the ground-truth eta volume; the images use the sharp surface). eta and tilt choose those
-    of a family shape, seed draws the `random` one; the paper's scenes are fixed."""
+    of a family shape, seed draws the `random` one and the `blobs` cluster; the other scenes
+    are fixed."""
     if name in FAMILY:
         return make_shape(name, eta=eta, tilt=tilt, seed=seed)
     if name in SCENES and (eta is not None or tilt is not None):
@@ -49,14 +60,17 @@ def scene_object(name: str, eta: float | None = None, tilt=None, seed: int | Non
         return Drop(R=18.0, H=22.0, eta=1.33, width=0.8)
     if name == "luneburg":
         return Luneburg(radius=20.0)
+    if name == "blobs":
+        # every blob 34 mm (4.25 sigma) or more from the walls: eta - 1 there stays below
+        # 5 x 0.16 exp(-34^2 / 2 8^2) < 1e-4 whatever the seed
+        return Blobs.random(5, amplitude=0.16, seed=seed or 0, extent=16.0, sigmas=(5.0, 8.0))
+    if name == "grin-rod":
+        return GrinRod(n0=1.2, radius=12.0, length=50.0, cap=8.0, tilt=(0.0, 30.0, 0.0))
+    if name == "grin-lens":
+        return GrinLens(dn=0.4, radius=20.0, thickness=12.0, rim=4.0, tilt=(40.0, 25.0, 0.0))
     if name == "plume":
-        # a rising hot-gas plume: blobs stacked along z, eta - 1 around 1e-3
-        z = np.linspace(-25, 25, 6)
-        centers = np.column_stack([3 * np.sin(z / 9), 2 * np.cos(z / 7), z])
-        return Blobs(
-            centers=centers.tolist(),
-            amplitudes=(1e-3 * np.linspace(1.2, 0.6, 6)).tolist(),
-            sigmas=np.linspace(6, 11, 6).tolist(),
+        return Plume(
+            amplitude=1e-3, sigma0=2.0, spread=0.08, half_height=35.0, center=(0.0, 0.0, 5.0)
         )
     raise ClrefractError(f"unknown scene {name!r}; scenes are {', '.join(SCENES)}")
 

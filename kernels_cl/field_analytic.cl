@@ -2,6 +2,22 @@
  * Exactly one FIELD_* define selects the field; its parameters are in fp
  * (layouts mirror clrefract/fields/analytic.py). */
 
+/* Tilted fields: fp[0..2] the centre, fp[3..11] M (world -> local, row-major). */
+inline void tilted_local(__global const REAL *restrict fp, realv x, realv y, realv z,
+                         realv *lx, realv *ly, realv *lz) {
+    realv px = x - fp[0], py = y - fp[1], pz = z - fp[2];
+    *lx = fp[3] * px + fp[4] * py + fp[5] * pz;
+    *ly = fp[6] * px + fp[7] * py + fp[8] * pz;
+    *lz = fp[9] * px + fp[10] * py + fp[11] * pz;
+}
+/* a local vector back to world: M^T v */
+inline void tilted_world(__global const REAL *restrict fp, realv vx, realv vy, realv vz,
+                         realv *wx, realv *wy, realv *wz) {
+    *wx = fp[3] * vx + fp[6] * vy + fp[9] * vz;
+    *wy = fp[4] * vx + fp[7] * vy + fp[10] * vz;
+    *wz = fp[5] * vx + fp[8] * vy + fp[11] * vz;
+}
+
 #if defined(FIELD_LUNEBURG)
 /* fp: cx cy cz R.  eta = sqrt(2 - r^2/R^2) inside, 1 outside. */
 inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
@@ -96,6 +112,74 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
     return eta;
 }
 
+#elif defined(FIELD_GRIN_ROD)
+/* fp: cx cy cz, M (world -> local), n0 a L/2 cap.  Along local z:
+ * eta = 1 + (eta_p - 1) S((L/2 - |z|) / cap), eta_p = n0 sqrt(max(1 - a^2 rho^2, 1/n0^2)). */
+inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
+                        realv *gz) {
+    realv lx, ly, lz;
+    tilted_local(fp, x, y, z, &lx, &ly, &lz);
+    REAL n0 = fp[12], a2 = fp[13] * fp[13], cap = fp[15], floor_q = (REAL)1 / (n0 * n0);
+    realv q = RV(1) - a2 * (lx * lx + ly * ly);
+    realv eta_p = n0 * sqrt(fmax(q, RV(floor_q)));
+    realv k = SEL(RV(0), -n0 * n0 * a2 / eta_p, q > RV(floor_q));
+    realv u = (RV(fp[14]) - fabs(lz)) / cap;
+    realv w = smoother(u);
+    realv glz = -(eta_p - RV(1)) * sign(lz) * smoother_d(u) / cap;
+    tilted_world(fp, w * k * lx, w * k * ly, glz, gx, gy, gz);
+    return RV(1) + (eta_p - RV(1)) * w;
+}
+
+#elif defined(FIELD_GRIN_LENS)
+/* fp: cx cy cz, M (world -> local), dn R T rim.  Disc about local z:
+ * eta = 1 + dn (1 - u^2)^3 S((R - rho) / rim), u = 2z / T, |u| < 1. */
+inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
+                        realv *gz) {
+    realv lx, ly, lz;
+    tilted_local(fp, x, y, z, &lx, &ly, &lz);
+    REAL dn = fp[12], R = fp[13], T = fp[14], rim = fp[15];
+    realv u = RV(2) * lz / T;
+    realv t = fmax(RV(1) - u * u, RV(0));
+    realv b = t * t * t, db = RV(-12) * u * t * t / T;
+    realv rho = sqrt(lx * lx + ly * ly);
+    realv v = (RV(R) - rho) / rim;
+    realv w = smoother(v);
+    realv dw = -dn * b * smoother_d(v) / (rim * fmax(rho, RV(REAL_EPS)));
+    tilted_world(fp, dw * lx, dw * ly, dn * db * w, gx, gy, gz);
+    return RV(1) + dn * b * w;
+}
+
+#elif defined(FIELD_PLUME)
+/* fp: cx cy cz h A0 s0 k p rise fade m w.  Height above the source zeta = z - (cz - h),
+ * zc = clamp(zeta, 0, 2h), t = zc / 2h; s = s0 + k zc, A = A0 (s0 / s)^p; axis at
+ * (cx + m t sin(w zc), cy + m t sin(0.6 w zc));
+ * eta = 1 + A W exp(-r^2 / 2 s^2), W = S(zeta / rise) S((2h - zeta) / fade). */
+inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
+                        realv *gz) {
+    REAL h2 = 2 * fp[3], s0 = fp[5], k = fp[6], p = fp[7], m = fp[10], w = fp[11];
+    realv zeta = z - (fp[2] - fp[3]);
+    realv zc = clamp(zeta, RV(0), RV(h2));
+    realv t = zc / h2;
+    realv s = s0 + k * zc;
+    realv amp = fp[4] * exp(-p * log(s / s0));
+    realv sx = sin(w * zc), sy = sin((REAL)0.6 * w * zc);
+    realv px = x - fp[0] - m * t * sx, py = y - fp[1] - m * t * sy;
+    realv dxm = m * (sx / h2 + t * w * cos(w * zc));
+    realv dym = m * (sy / h2 + (REAL)0.6 * t * w * cos((REAL)0.6 * w * zc));
+    realv r2 = px * px + py * py, is2 = RV(1) / (s * s);
+    realv g = amp * exp((REAL)-0.5 * r2 * is2);
+    realv lo = zeta / fp[8], hi = (RV(h2) - zeta) / fp[9];
+    realv slo = smoother(lo), shi = smoother(hi);
+    realv win = slo * shi;
+    realv dwin = smoother_d(lo) * shi / fp[8] - slo * smoother_d(hi) / fp[9];
+    realv f = g * win;
+    realv dz = (px * dxm + py * dym) * is2 + (r2 * is2 - p) * k / s;
+    *gx = -f * px * is2;
+    *gy = -f * py * is2;
+    *gz = g * dwin + f * dz;
+    return RV(1) + f;
+}
+
 #else /* smoothed solids: eta = 1 + (n - 1) S(1/2 - sd / w), sd the signed distance */
 
 #if defined(FIELD_SPHERE)
@@ -120,10 +204,8 @@ inline realv solid_sdf(FIELD_PARAMS, realv x, realv y, realv z, realv *nx, realv
 #define SOLID_W fp[15]
 inline realv solid_sdf(FIELD_PARAMS, realv x, realv y, realv z, realv *nx, realv *ny,
                        realv *nz) {
-    realv px = x - fp[0], py = y - fp[1], pz = z - fp[2];
-    realv lx = fp[3] * px + fp[4] * py + fp[5] * pz;
-    realv ly = fp[6] * px + fp[7] * py + fp[8] * pz;
-    realv lz = fp[9] * px + fp[10] * py + fp[11] * pz;
+    realv lx, ly, lz;
+    tilted_local(fp, x, y, z, &lx, &ly, &lz);
     REAL rin = fp[12] * (REAL)0.28867513459481287; /* side / (2 sqrt 3) */
     REAL c30 = (REAL)0.8660254037844386;
     /* plane normals (0,1), (-c30,-1/2), (c30,-1/2), and the caps (0,0,+-1) */
@@ -138,10 +220,7 @@ inline realv solid_sdf(FIELD_PARAMS, realv x, realv y, realv z, realv *nx, realv
     m = dk > d;
     d = SEL(d, dk, m); mx = SEL(mx, RV(0), m); my = SEL(my, RV(0), m);
     mz = SEL(mz, sign(lz), m);
-    /* back to world: M^T n */
-    *nx = fp[3] * mx + fp[6] * my + fp[9] * mz;
-    *ny = fp[4] * mx + fp[7] * my + fp[10] * mz;
-    *nz = fp[5] * mx + fp[8] * my + fp[11] * mz;
+    tilted_world(fp, mx, my, mz, nx, ny, nz);
     return d;
 }
 

@@ -21,7 +21,18 @@ from clrefract.snell import SnellRenderer
 from clrefract.tracer import Status, Tracer, TraceSettings
 
 BOX = Box()
-ANALYTIC = ["luneburg", "maxwell", "fibre", "blobs", "sphere", "prism", "drop"]
+ANALYTIC = [
+    "luneburg",
+    "maxwell",
+    "fibre",
+    "blobs",
+    "sphere",
+    "prism",
+    "drop",
+    "grin-rod",
+    "grin-lens",
+    "plume",
+]
 FITTED = [
     "voxel-trilinear",
     "voxel-smoothstep",

@@ -19,7 +19,7 @@ class AnalyticField(Field):
     source = "field_analytic.cl"
 
     def defines(self) -> dict:
-        return {f"FIELD_{self.kind.upper()}": 1}
+        return {f"FIELD_{self.kind.upper().replace('-', '_')}": 1}
 
     def to_dict(self) -> dict:
         return {"kind": self.kind, **{k: as_plain(v) for k, v in asdict(self).items()}}
@@ -137,12 +137,21 @@ class Blobs(AnalyticField):
         self.centers, self.amplitudes, self.sigmas = c.tolist(), a.tolist(), s.tolist()
 
     @classmethod
-    def random(cls, n: int, amplitude: float, seed: int = 0, extent: float = 25.0):
+    def random(
+        cls,
+        n: int,
+        amplitude: float,
+        seed: int = 0,
+        extent: float = 25.0,
+        sigmas: tuple[float, float] = (6.0, 12.0),
+    ):
+        """n blobs centred uniformly in the cube +-extent, amplitudes uniform in
+        [amplitude / 2, amplitude], sigmas uniform in `sigmas`; the same for the same seed."""
         rng = np.random.default_rng(seed)
         return cls(
             centers=rng.uniform(-extent, extent, (n, 3)).tolist(),
             amplitudes=(amplitude * rng.uniform(0.5, 1.0, n)).tolist(),
-            sigmas=rng.uniform(6.0, 12.0, n).tolist(),
+            sigmas=rng.uniform(*sigmas, n).tolist(),
         )
 
     def defines(self):
@@ -243,11 +252,34 @@ def rotation_xyz(deg: Vec3) -> np.ndarray:
     return rz @ ry @ rx
 
 
+class Tilted:
+    """A field in its own frame: local = M (x - center), M = rotation_xyz(tilt)^T (world to
+    local); params() puts the centre in slots 0-2 and M, row-major, in slots 3-11."""
+
+    tilt: Vec3
+    center: Vec3
+
+    @property
+    def world_to_local(self):
+        return rotation_xyz(self.tilt).T
+
+    def frame_params(self) -> list:
+        return [*self.center, *self.world_to_local.ravel()]
+
+    # einsum: a (n, 3) @ (3, 3) matmul is several times slower on millions of points
+    def local(self, pts):
+        return np.einsum("ij,kj->ik", pts - np.asarray(self.center), self.world_to_local)
+
+    def to_world(self, v):
+        """Local vectors (n, 3) in world axes."""
+        return np.einsum("ij,jk->ik", v, self.world_to_local)
+
+
 _C30 = np.sqrt(3.0) / 2
 
 
 @dataclass
-class Prism(SmoothSolid):
+class Prism(Tilted, SmoothSolid):
     """Equilateral triangular prism (side, length), axis along local z, rotated by `tilt`."""
 
     side: float = 40.0
@@ -261,26 +293,12 @@ class Prism(SmoothSolid):
     def __post_init__(self):
         self._check()
 
-    @property
-    def world_to_local(self):
-        return rotation_xyz(self.tilt).T
-
     def params(self):
-        return np.array(
-            [
-                *self.center,
-                *self.world_to_local.ravel(),
-                self.side,
-                self.length,
-                self.eta,
-                self.width,
-            ],
-            float,
-        )
+        return np.array([*self.frame_params(), self.side, self.length, self.eta, self.width], float)
 
     def sdf(self, pts):
         m = self.world_to_local
-        loc = (pts - np.asarray(self.center)) @ m.T
+        loc = self.local(pts)
         rin = self.side / (2 * np.sqrt(3))
         normals = np.array([[0, 1, 0], [-_C30, -0.5, 0], [_C30, -0.5, 0]], float)
         d = np.column_stack([loc @ normals.T - rin, np.abs(loc[:, 2]) - 0.5 * self.length])
@@ -353,4 +371,179 @@ class Drop(SmoothSolid):
         return sgn * dist, np.column_stack([gr * p[:, 0] * irho, gr * p[:, 1] * irho, gz])
 
 
-ANALYTIC = {c.kind: c for c in (Luneburg, Maxwell, Fibre, Blobs, Sphere, Prism, Drop)}
+def _positive(kind: str, **values) -> None:
+    for name, v in values.items():
+        if not v > 0:
+            raise ClrefractError(f"{kind}: {name} must be positive, got {v}")
+
+
+@dataclass
+class GrinRod(Tilted, AnalyticField):
+    """Parabolic graded-index rod along local z: eta^2 = n0^2 (1 - a^2 rho^2) for rho < R with
+    a = sqrt(1 - 1/n0^2) / R, so eta falls to exactly 1 at rho = R and stays 1 beyond; of
+    length L, its ends taken to 1 over the last `cap` mm by a C2 ramp:
+    eta = 1 + (eta_p(rho) - 1) S((L/2 - |z|) / cap). Within |z| < L/2 - cap it is the exact
+    Selfoc profile (meridional rays rho = rho_max sin(a n0 z / beta + phase))."""
+
+    n0: float = 1.2
+    radius: float = 12.0
+    length: float = 50.0
+    cap: float = 8.0
+    tilt: Vec3 = (0.0, 30.0, 0.0)
+    center: Vec3 = (0.0, 0.0, 0.0)
+    kind = "grin-rod"
+
+    def __post_init__(self):
+        _positive(self.kind, radius=self.radius, cap=self.cap, excess=self.n0 - 1)
+        if not self.length > 2 * self.cap:
+            raise ClrefractError(f"{self.kind}: length must exceed twice the cap length")
+
+    @property
+    def a(self) -> float:
+        return float(np.sqrt(1 - 1 / self.n0**2) / self.radius)
+
+    def params(self):
+        return np.array([*self.frame_params(), self.n0, self.a, self.length / 2, self.cap], float)
+
+    @property
+    def eta_max(self):
+        return float(self.n0)
+
+    def eval(self, pts):
+        loc = self.local(pts)
+        q = 1 - self.a**2 * (loc[:, :2] ** 2).sum(1)
+        inside = q > 1 / self.n0**2
+        eta_p = self.n0 * np.sqrt(np.maximum(q, 1 / self.n0**2))
+        k = np.where(inside, -(self.n0**2) * self.a**2 / eta_p, 0.0)
+        u = (self.length / 2 - np.abs(loc[:, 2])) / self.cap
+        w = smoother(u)
+        grad = np.column_stack(
+            [
+                w * k * loc[:, 0],
+                w * k * loc[:, 1],
+                -(eta_p - 1) * np.sign(loc[:, 2]) * smoother_d(u) / self.cap,
+            ]
+        )
+        return 1 + (eta_p - 1) * w, self.to_world(grad)
+
+
+@dataclass
+class GrinLens(Tilted, AnalyticField):
+    """Axial graded-index disc of radius R and thickness T about local z, its index varying
+    along the axis: eta = 1 + dn B(2z/T) S((R - rho) / rim), B(u) = (1 - u^2)^3 (C2, 0 at the
+    faces), S the C2 smoothstep: 1 + dn on the mid-plane, 1 on the faces and past the rim."""
+
+    dn: float = 0.4
+    radius: float = 20.0
+    thickness: float = 12.0
+    rim: float = 4.0
+    tilt: Vec3 = (40.0, 25.0, 0.0)
+    center: Vec3 = (0.0, 0.0, 0.0)
+    kind = "grin-lens"
+
+    def __post_init__(self):
+        _positive(self.kind, dn=self.dn, thickness=self.thickness, rim=self.rim)
+        if not self.radius > self.rim:
+            raise ClrefractError(f"{self.kind}: radius must exceed the rim width")
+
+    def params(self):
+        return np.array(
+            [*self.frame_params(), self.dn, self.radius, self.thickness, self.rim], float
+        )
+
+    @property
+    def eta_max(self):
+        return 1.0 + float(self.dn)
+
+    def eval(self, pts):
+        loc = self.local(pts)
+        u = 2 * loc[:, 2] / self.thickness
+        t = np.maximum(1 - u * u, 0.0)
+        b, db = t**3, -12 * u * t * t / self.thickness
+        rho = np.hypot(loc[:, 0], loc[:, 1])
+        v = (self.radius - rho) / self.rim
+        w, dw = smoother(v), -smoother_d(v) / self.rim / np.maximum(rho, 1e-300)
+        grad = self.dn * np.column_stack([b * dw * loc[:, 0], b * dw * loc[:, 1], db * w])
+        return 1 + self.dn * b * w, self.to_world(grad)
+
+
+@dataclass
+class Plume(AnalyticField):
+    """A buoyant plume rising along +z from its source at z0 = cz - h to z0 + 2h: a Gaussian
+    cross-section widening with the height zeta = z - z0 above the source about a meandering
+    axis, eta = 1 + A W exp(-r^2 / 2 s^2) with s = s0 + k zeta, A = A0 (s0 / s)^p, the axis at
+    (cx + m t sin(w zeta), cy + m t sin(0.6 w zeta)), t = zeta / 2h, w = 2 pi / wavelength,
+    and W = S(zeta / rise) S((2h - zeta) / fade): eta = 1 below the source and above its top."""
+
+    amplitude: float = 1e-3
+    sigma0: float = 2.0
+    spread: float = 0.08
+    decay: float = 5.0 / 3.0
+    half_height: float = 35.0
+    rise: float = 4.0
+    fade: float = 15.0
+    meander: float = 4.0
+    wavelength: float = 40.0
+    center: Vec3 = (0.0, 0.0, 5.0)
+    kind = "plume"
+
+    def __post_init__(self):
+        _positive(
+            self.kind,
+            amplitude=self.amplitude,
+            sigma0=self.sigma0,
+            half_height=self.half_height,
+            rise=self.rise,
+            fade=self.fade,
+            wavelength=self.wavelength,
+        )
+        if self.spread < 0 or self.decay < 0:
+            raise ClrefractError(f"{self.kind}: spread and decay must not be negative")
+
+    def params(self):
+        return np.array(
+            [
+                *self.center,
+                self.half_height,
+                self.amplitude,
+                self.sigma0,
+                self.spread,
+                self.decay,
+                self.rise,
+                self.fade,
+                self.meander,
+                2 * np.pi / self.wavelength,
+            ],
+            float,
+        )
+
+    @property
+    def eta_max(self):
+        return 1.0 + float(self.amplitude)
+
+    def eval(self, pts):
+        h2, m, w = 2 * self.half_height, self.meander, 2 * np.pi / self.wavelength
+        zeta = pts[:, 2] - (self.center[2] - self.half_height)
+        zc = np.clip(zeta, 0.0, h2)
+        t = zc / h2
+        s = self.sigma0 + self.spread * zc
+        amp = self.amplitude * (self.sigma0 / s) ** self.decay
+        px = pts[:, 0] - self.center[0] - m * t * np.sin(w * zc)
+        py = pts[:, 1] - self.center[1] - m * t * np.sin(0.6 * w * zc)
+        dxm = m * (np.sin(w * zc) / h2 + t * w * np.cos(w * zc))
+        dym = m * (np.sin(0.6 * w * zc) / h2 + 0.6 * t * w * np.cos(0.6 * w * zc))
+        r2 = px * px + py * py
+        g = amp * np.exp(-0.5 * r2 / s**2)
+        lo, hi = zeta / self.rise, (h2 - zeta) / self.fade
+        win = smoother(lo) * smoother(hi)
+        dwin = smoother_d(lo) * smoother(hi) / self.rise - smoother(lo) * smoother_d(hi) / self.fade
+        f = g * win
+        dz = (px * dxm + py * dym) / s**2 + (r2 / s**2 - self.decay) * self.spread / s
+        grad = np.column_stack([-f * px / s**2, -f * py / s**2, g * dwin + f * dz])
+        return 1 + f, grad
+
+
+ANALYTIC = {
+    c.kind: c
+    for c in (Luneburg, Maxwell, Fibre, Blobs, Sphere, Prism, Drop, GrinRod, GrinLens, Plume)
+}
