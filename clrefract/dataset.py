@@ -577,8 +577,9 @@ def check_dataset(root, notes: list[str] | None = None, box: Box | None = None) 
     except ClrefractError as exc:
         return [str(exc)]
     notes.extend(f"assumed {a}" for a in scene.assumed if box is None or "box" not in a)
+    env = None
     try:
-        EnvMap.from_exr(root / scene.envmap)
+        env = EnvMap.from_exr(root / scene.envmap)
     except ClrefractError as exc:
         problems.append(str(exc))
     splits = _splits(root, scene, problems)
@@ -589,6 +590,11 @@ def check_dataset(root, notes: list[str] | None = None, box: Box | None = None) 
     lo, hi = np.asarray(scene.box.lo), np.asarray(scene.box.hi)
     centre, half = (lo + hi) / 2, np.linalg.norm(hi - lo) / 2
     _describe_footprint([c for _, cams in splits for c in cams], centre, hi - lo, notes)
+    from .box_walls import pick_views
+
+    carved = set(pick_views(sum(len(cams) for _, cams in splits)))  # by place in the splits
+    views: list[tuple[Camera, np.ndarray]] = []  # the views carved and their masks
+    first = 0  # the place of the split's first frame
     for split, cams in splits:
         suffix = scene.frames or frame_suffix(root, cams)
         for k, cam in enumerate(cams):
@@ -630,4 +636,31 @@ def check_dataset(root, notes: list[str] | None = None, box: Box | None = None) 
                 check_background(path, img, alpha)
             except ClrefractError as exc:
                 problems.append(str(exc))
+            if first + k in carved and env is not None and not problems:
+                views.append((cam, _view_mask(mask, cam, img, alpha, env)))
+        first += len(cams)
+    if not problems:
+        _describe_walls(scene.box, views, notes)
     return problems
+
+
+def _view_mask(path: Path | None, cam: Camera, img, alpha, env: EnvMap) -> np.ndarray:
+    """A frame's mask as a fit takes it: its mask file, else its alpha where that varies,
+    else the pixels that differ from the straight view of the environment."""
+    from .hull import refraction_mask
+
+    if path is not None:
+        return read_mask(path, cam)
+    mask = alpha_mask(alpha)
+    return refraction_mask(cam, img, env) if mask is None else mask
+
+
+def _describe_walls(box: Box, views: list, notes: list[str]) -> None:
+    """Warn where the masks' hull reaches the box's walls (box_walls), with a box to give."""
+    from .box_walls import box_walls
+
+    if not views:
+        return
+    walls = box_walls(box, [c for c, _ in views], [m for _, m in views])
+    if walls is not None:
+        notes.append(f"warning: {walls.message()}")

@@ -61,7 +61,9 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
         raise
 
 
-def start_run(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> Fit:
+def start_run(
+    dataset: Path, folder: RunFolder, cfg: FitConfig, stream, say_walls: bool = True
+) -> Fit:
     from ..report import write_start_report
 
     if kind_of(cfg).candidates:
@@ -70,7 +72,7 @@ def start_run(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> Fit:
     folder.write_config(cfg)
     folder.write_text("metrics.jsonl", "")
     t0 = time.perf_counter()
-    fit.start()
+    fit.start(say_walls)
     folder.write_config(fit.cfg)  # with what the start resolved
     write_start_report(fit, time.perf_counter() - t0)
     folder.write_meta(  # the field's box: a level set's is the object's
@@ -78,6 +80,7 @@ def start_run(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> Fit:
             "dataset": str(Path(dataset).resolve()),
             "box": fit.box.to_dict(),
             "eta_max": fit.eta_max,
+            **({"box_walls": fit.walls.to_dict()} if fit.walls else {}),
         }
     )
     fit.save_checkpoint()  # a run killed before its first step resumes from its start
@@ -98,7 +101,7 @@ def choose_model(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> Fi
         ensure_out_dir(sub.path, "run folder")
         out.write(f"model: starting {name}\n")
         if not sub.holds_run():  # a candidate started before is taken up
-            start_run(dataset, sub, candidate_config(cfg, name), stream)
+            start_run(dataset, sub, candidate_config(cfg, name), stream, name == names[0])
         cand = prepare_fit(dataset, sub.path, None, resume=True, stream=stream)
         scores[name] = float(cand.held_out_loss())
     best = min(scores, key=scores.get)

@@ -49,6 +49,7 @@ class Fit:
         self.bound: Bound | None = None
         self.optimizer = None
         self.record: dict = {}  # what results.json reports beside the scores
+        self.walls = None  # the box's walls the masks reach (box_walls.Walls), at the start
         self.occupancy = None
         if cfg.skip_empty:  # one rule, for the kind of field whose rays skip
             kind = kind_named(self.kind.skipping_kind(cfg))
@@ -169,7 +170,22 @@ class Fit:
         self.size_from_images()
         return self.kind.resolution_at(cfg, 0)
 
-    def start(self) -> None:
+    def check_walls(self, say: bool = True) -> None:
+        """Find (and unless `say` is false, warn) where the masks' hull reaches the dataset's
+        box's walls, where the field is held at 1 (box_walls), with the --box to give."""
+        from ..box_walls import box_walls
+
+        c = self.cfg
+        self.walls = box_walls(
+            self.ds.box, self.ds.train, self.rays.masks(), c.hull_tolerance, c.hull_carve
+        )
+        if self.walls is not None and say:
+            self.stream.write(f"warning: {self.ds.root}: {self.walls.message()}\n")
+
+    def start(self, say_walls: bool = True) -> None:
+        """Start the field (starts.py); `say_walls`: warn where the medium reaches the box's
+        walls (a model's later candidates find the same, said once)."""
+        self.check_walls(say_walls)
         res = self.start_grid()
         guide = STARTS[self.kind.start(self.cfg)]().run(self, res)
         self.optimizer = optimizer_for(self, guide)
