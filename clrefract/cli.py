@@ -529,9 +529,12 @@ def _names(text: str) -> list[str]:
 
 def _cmd_table_run(args) -> int:
     from . import shards
-    from .table import run_protocol, write_table
+    from .table import run_protocol, write_page, write_table
 
     out = Path(args.out)
+    whole = shards.parse(args.shard)[1] == 1
+    if args.page and not whole:
+        raise ClrefractError("--page needs the whole protocol: give it to `table merge`")
     records = run_protocol(
         args.protocol,
         out,
@@ -540,18 +543,31 @@ def _cmd_table_run(args) -> int:
         methods=_names(args.methods),
         data_root=Path(args.data) if args.data else None,
     )
-    if shards.parse(args.shard)[1] == 1 and records:
+    if whole and records:
         write_table(records, out)
+        if args.page:
+            write_page(records, args.page)
         print((out / "table.md").read_text(), end="")
     return 0
 
 
 def _cmd_table_merge(args) -> int:
-    from .table import merge, write_table
+    from .table import merge, write_page, write_table
 
     out = Path(args.out)
-    write_table(merge([Path(f) for f in args.folders]), out)
+    records = merge([Path(f) for f in args.folders])
+    write_table(records, out)
+    if args.page:
+        write_page(records, args.page)
     print((out / "table.md").read_text(), end="")
+    return 0
+
+
+def _cmd_table_page(args) -> int:
+    from .table import read_records, write_page
+
+    write_page(read_records(args.records), args.out)
+    print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
     return 0
 
 
@@ -687,6 +703,12 @@ def _joined_box(argv: list[str]) -> list[str]:
         else:
             out.append(a)
     return out
+
+
+PAGE_HELP = (
+    "also write the results page (markdown: how, where and when it was measured, then one "
+    "table per figure; e.g. docs/results.md) and its records beside it (PAGE with .json)"
+)
 
 
 def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
@@ -870,11 +892,17 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         help="comma-separated methods",
     )
     p.add_argument("--data", help="dataset folder root (default OUT/data)")
+    p.add_argument("--page", help=PAGE_HELP + " (the whole protocol only: no --shard)")
     p.set_defaults(func=_cmd_table_run)
     p = tab.add_parser("merge", help="join shard records into the table")
     p.add_argument("folders", nargs="+", help="folders holding shard-*-of-*.json")
     p.add_argument("--out", required=True, help="folder for the table")
+    p.add_argument("--page", help=PAGE_HELP)
     p.set_defaults(func=_cmd_table_merge)
+    p = tab.add_parser("page", help="write the results page from saved records, running nothing")
+    p.add_argument("records", help="a table's records: OUT/table.json, or a page's .json")
+    p.add_argument("--out", required=True, help="the page, e.g. docs/results.md")
+    p.set_defaults(func=_cmd_table_page)
 
     from .tradeoff import SCENES
 

@@ -7,7 +7,8 @@ shard-i-of-n.json and `merge` joins the shards' records into the table. A job wh
 already holds eval/eval.json is not run again (a shard that stopped can be started again).
 
 Outputs: table.md (readable: the mean over scenes beside the paper's figures, then each scene),
-table.csv and table.json (one record per run).
+table.csv and table.json (one record per run); on request the results page (docs/results.md:
+how, where and when it was measured, one table per figure) with its records beside it.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import csv
 import io
 import json
 import math
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -126,6 +128,7 @@ def run_job(protocol: str, scene: str, method: str, out: Path, data_root: Path, 
 
             shutil.rmtree(run)
         wall = run_method(method, data, run, PROTOCOLS[protocol]["methods"][method], stream)
+        wall.update(_measured_on(run))
         wall_file.write_text(json.dumps(wall))
         t0 = time.perf_counter()
         scores = evaluate_run(run, **PROTOCOLS[protocol].get("eval", {}))
@@ -147,7 +150,32 @@ def run_job(protocol: str, scene: str, method: str, out: Path, data_root: Path, 
         "paper_ssim": paper[1],
         "paper_chamfer_mm": paper[2],
         "run": str(run),
+        # where and when it was measured (None in runs that predate these keys)
+        **{k: wall.get(k) for k in ("eval_seconds", *MEASURED_ON)},
     }
+
+
+MEASURED_ON = ("commit", "commit_dirty", "device", "driver", "ended")
+
+
+def _measured_on(run: Path) -> dict:
+    """The commit, OpenCL device and driver a run was trained with, and when it ended (UTC):
+    from its run.json, else (the straight-ray runs record none) this process's."""
+    from .provenance import git_state, now
+
+    try:
+        meta = json.loads((run / "run.json").read_text())
+    except (OSError, ValueError):
+        meta = {}
+    commit, dirty = git_state()
+    out = {"commit": meta.get("commit", commit), "commit_dirty": meta.get("commit_dirty", dirty)}
+    out["device"], out["driver"] = meta.get("device"), meta.get("driver")
+    if out["device"] is None:  # the device Runtime(None) picks, as the run's did
+        from .runtime import _pick_device
+
+        info, _ = _pick_device(None)
+        out["device"], out["driver"] = info.name, f"{info.platform} {info.driver_version}"
+    return {**out, "ended": now()}
 
 
 def run_protocol(
@@ -254,7 +282,164 @@ def write_table(records: list[dict], out: Path) -> None:
     (out / "table.md").write_text(markdown(records))
     (out / "table.json").write_text(json.dumps(records, indent=2))
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(records[0]))
+    # every record's keys (merged shards of older versions may lack some)
+    w = csv.DictWriter(buf, fieldnames=list({k: 0 for r in records for k in r}))
     w.writeheader()
     w.writerows(records)
     (out / "table.csv").write_text(buf.getvalue())
+
+
+# The results page (docs/results.md): the table as measured, one table per figure, and what,
+# how, where and when it measured. Written from the records alone (saved beside the page), so
+# `clrefract table page` writes it again without running anything.
+FIGURES = (  # record key, heading, digits, the paper's figure's key
+    ("psnr", "PSNR (dB, test views)", 2, "paper_psnr"),
+    ("ssim", "SSIM (test views)", 3, "paper_ssim"),
+    ("chamfer_mm", "Chamfer distance D_C (mm)", 2, "paper_chamfer_mm"),
+    ("eta_rmse", "eta RMSE over the box", 4, None),
+    ("wall_seconds", "Wall time of training, start included (s)", 0, None),
+)
+PROTOCOL_NOTES = {
+    "tiny": "a smoke test of the pipeline; its scores mean nothing",
+    "quick": "the issue's 128 x 128 protocol, sized for 2 CPU cores",
+    "standard": "four times the quick protocol's iterations",
+    "full": "the paper's image size and iterations, for GPUs",
+}
+QUICK_TIME = "an estimated 2 hours on 2 CPU cores"  # PROTOCOLS: ~90 min + 3 interface fits
+
+
+def _ordered(records, key, order) -> list[str]:
+    have = {r[key] for r in records}
+    return [x for x in order if x in have] + sorted(have - set(order))
+
+
+def page_command(records: list[dict], page: str | Path) -> str:
+    """The command line that measures the records' table again and writes the page."""
+    protocol = records[0]["protocol"]
+    cmd = ["clrefract", "table", "run", "--protocol", protocol, "--out", f"table/{protocol}"]
+    scenes, methods = _ordered(records, "scene", SCENES), _ordered(records, "method", METHODS)
+    if scenes != list(SCENES):
+        cmd += ["--scenes", ",".join(scenes)]
+    if methods != list(METHODS):
+        cmd += ["--methods", ",".join(methods)]
+    return shlex.join([*cmd, "--page", str(page)])
+
+
+def _distinct(values, none="unknown (runs that predate the record)") -> str:
+    seen = list(dict.fromkeys(v for v in values if v is not None))
+    return "; ".join(seen) if seen else none
+
+
+def _settings(d: dict) -> str:
+    return ", ".join(f"{k}={v}" for k, v in d.items()) or "its defaults"
+
+
+def page(records: list[dict], path: str | Path) -> str:
+    """The results page of one protocol's records; `path` is where it is written (the commands
+    it shows name it, and its records beside it, PATH with .json)."""
+    protocols = sorted({r["protocol"] for r in records})
+    if len(protocols) != 1:
+        raise ClrefractError(f"records of protocols {', '.join(protocols)}: a page shows one")
+    (protocol,) = protocols
+    scenes, methods = _ordered(records, "scene", SCENES), _ordered(records, "method", METHODS)
+    spec = PROTOCOLS.get(protocol, {"data": {}, "methods": {}})
+    saved = Path(path).with_suffix(".json")
+    ended = sorted(r["ended"][:16].replace("T", " ") for r in records if r.get("ended"))
+    when = None
+    if ended:  # the last one's date only where it is not the first one's
+        when = f"{ended[0]} to {ended[-1].removeprefix(ended[0][:11])} UTC"
+    commits = [
+        None
+        if r.get("commit") is None
+        else r["commit"][:12] + (" with uncommitted changes" if r.get("commit_dirty") else "")
+        for r in records
+    ]
+    evals = [r.get("eval_seconds") for r in records]
+    data = spec["data"]
+    lines = [
+        "# Results: the paper's Table 1, measured",
+        "",
+        f"Written by `clrefract table` from its records, [{saved.name}]({saved.name}); "
+        "not edited by hand.",
+        "",
+    ]
+    if protocol == "tiny":
+        lines += [
+            "**Not Table 1's figures: the `tiny` protocol is a smoke test of the pipeline and its "
+            f"scores mean nothing.** The quick protocol's page ({QUICK_TIME}):",
+            "",
+            "```bash",
+            page_command([{**r, "protocol": "quick"} for r in records], path),
+            "```",
+            "",
+        ]
+    lines += [
+        f"- Runs: {len(records)}, {len(methods)} methods ({', '.join(methods)}) on "
+        f"{len(scenes)} scenes ({', '.join(scenes)}).",
+        f"- Protocol: `{protocol}` ({PROTOCOL_NOTES.get(protocol, 'not one of this version')}): "
+        f"datasets of {_settings(data)}; every fifth view a test view.",
+        "- Budgets: "
+        + "; ".join(f"{m} ({_settings(spec['methods'].get(m, {}))})" for m in methods)
+        + ".",
+        f"- Scoring: `clrefract eval` ({_settings(spec.get('eval', {}))}).",
+        f"- Measured: runs ended {when or _distinct([])}.",
+        f"- Commit: {_distinct(commits)}.",
+        f"- Device: {_distinct(r.get('device') for r in records)}; driver: "
+        f"{_distinct(r.get('driver') for r in records)}.",
+        f"- Wall time: training {sum(r['wall_seconds'] for r in records):.0f} s, scoring "
+        + (f"{sum(evals):.0f} s" if None not in evals else "unknown")
+        + f", over the {len(records)} runs.",
+        "- paper: the paper's Table 1 (its own benchmark, 800 x 800, the mean over its scenes); "
+        "blank for a row the paper does not have. A dash: no figure.",
+        "",
+        "Measure again and write this page:",
+        "",
+        "```bash",
+        page_command(records, path),
+        "```",
+        "",
+        "Write this page again from its records, running nothing:",
+        "",
+        "```bash",
+        shlex.join(["clrefract", "table", "page", str(saved), "--out", str(path)]),
+        "```",
+    ]
+    cell = {(r["scene"], r["method"]): r for r in records}
+    for key, heading, digits, paper_key in FIGURES:
+        head = ["Method", *scenes, "mean", *(["paper"] if paper_key else [])]
+        lines += ["", f"## {heading}", "", "| " + " | ".join(head) + " |"]
+        lines.append("|---" + "|---:" * (len(head) - 1) + "|")
+        for m in methods:
+            rows = [cell[s, m] for s in scenes if (s, m) in cell]
+            mean = "n/a" if all(r[key] == "n/a" for r in rows) else _mean(rows, key)
+            if len(rows) < len(scenes):
+                mean = None
+            row = [f"{rows[0]['paper_name']} (`{m}`)"]
+            row += [_f(cell[s, m][key] if (s, m) in cell else None, digits) for s in scenes]
+            row.append(_f(mean, digits))
+            if paper_key:
+                paper = rows[0][paper_key]
+                row.append("" if _num(paper) is None else _f(paper, digits))
+            lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_page(records: list[dict], path: str | Path) -> None:
+    """The results page at `path` and its records beside it (PATH with .json)."""
+    path = Path(path)
+    if path.suffix == ".json":
+        raise ClrefractError(f"{path}: the page is markdown; its records go beside it as .json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.with_suffix(".json").write_text(json.dumps(records, indent=2) + "\n")
+    path.write_text(page(records, path))
+
+
+def read_records(path: str | Path) -> list[dict]:
+    """The records of a saved table (table.json, or a page's .json)."""
+    try:
+        records = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise ClrefractError(f"{path}: cannot read the table's records ({exc})") from None
+    if not isinstance(records, list) or not records or not all("method" in r for r in records):
+        raise ClrefractError(f"{path}: not a table's records (a list of one record per run)")
+    return records
