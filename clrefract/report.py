@@ -236,6 +236,10 @@ def write_fit_report(fit) -> dict:
     for key in ("stopped", "stopped_without_progress", "size_search", "final_refit", "narrowing"):
         if fit.record.get(key):
             result[key] = fit.record[key]
+    start_val = fit.record.get("start_val_loss")  # a resumed run's record has none
+    if start_val and fit.best.found:
+        result["start_val_loss"] = float(start_val)
+        result["best_val_over_start"] = float(fit.best.loss) / float(start_val)
     rows = _guarded(result, "metrics.jsonl", lambda: _metric_rows(out / "metrics.jsonl")) or []
     result["train_seconds"] = float(sum(r.get("seconds", 0.0) for r in rows))
     result["final_loss"] = rows[-1].get("loss") if rows else None

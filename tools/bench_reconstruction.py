@@ -43,12 +43,14 @@ import numpy as np
 ADAM_ITERATIONS = 100  # the quick protocol's Adam steps
 
 
-def dataset(scene: str, res: int, root: Path) -> Path:
+def dataset(scene: str, res: int, root: Path, views: int = 100) -> Path:
+    """The scene's dataset ("blobs:2": the blob cluster of seed 2), made once."""
     from clrefract.synth import MakeOptions, make_dataset
 
-    out = root / f"{scene}_{res}"
+    name, _, seed = scene.partition(":")
+    out = root / f"{name}{seed and '-' + seed}_{res}" + ("" if views == 100 else f"_{views}v")
     if not (out / "scene.json").is_file():
-        make_dataset(scene, out, MakeOptions(views=100, res=res))
+        make_dataset(name, out, MakeOptions(views=views, res=res, seed=int(seed or 0)))
     return out
 
 
@@ -59,7 +61,7 @@ def bench_scene(scene: str, args) -> dict:
     from clrefract.fit import load_config, prepare_fit
     from clrefract.report import scene_truth, score_field
 
-    data = dataset(scene, args.res, Path(args.data))
+    data = dataset(scene, args.res, Path(args.data), args.views)
     cfg = load_config(
         Path(args.config) if args.config else None,
         dict(
@@ -73,13 +75,15 @@ def bench_scene(scene: str, args) -> dict:
             lr=args.lr,
         ),
     )
-    if args.iterations is None and cfg.optimizer == "adam":
+    if args.iterations is None and cfg.optimizer == "adam" and cfg.field != "voxel":
         cfg.iterations = ADAM_ITERATIONS
     row: dict = {"scene": scene, "field": args.field, "res": args.res, "grid": args.grid}
-    run = Path(args.runs) / scene
+    run = Path(args.runs) / scene.replace(":", "-")
     shutil.rmtree(run, ignore_errors=True)
     t0 = time.perf_counter()
-    fit = prepare_fit(data, run, cfg)  # scores its start into start.json
+    fit = prepare_fit(data, run, cfg)  # scores its start into start.json (auto: chooses)
+    cfg = fit.cfg
+    row["model"] = cfg.field
     prepared = time.perf_counter() - t0  # the start and its scoring, as `clrefract fit` runs
     row["start"] = json.loads((run / "start.json").read_text())
     row["empty"] = score_field(fit, VoxelGrid(np.ones((8, 8, 8)), fit.box))
@@ -89,6 +93,16 @@ def bench_scene(scene: str, args) -> dict:
 
         ceiling = LevelSetField.from_sdf(
             lambda p: truth.sdf(p)[0], fit.box, args.grid, truth.eta, cfg.width
+        )
+    elif cfg.field == "interface":  # the truth's surface on the same grid, at zero width
+        from clrefract.fields.interface import InterfaceField
+
+        ceiling = (
+            InterfaceField.from_sdf(
+                lambda p: truth.sdf(p)[0], fit.box, args.grid, truth.eta, cfg.width
+            )
+            if hasattr(truth, "sdf")
+            else None
         )
     elif cfg.field == "hashgrid":  # the truth fitted the way the start is
         from dataclasses import replace
@@ -105,7 +119,7 @@ def bench_scene(scene: str, args) -> dict:
         ceiling = VoxelGrid.from_field(
             truth, fit.box, args.grid, interp=cfg.interp, eta_max=fit.eta_max
         )
-    row["ceiling"] = score_field(fit, ceiling)
+    row["ceiling"] = score_field(fit, ceiling) if ceiling is not None else None
     t0 = time.perf_counter()
     res = fit.run()
     row["fit"] = {**res, "seconds": prepared + time.perf_counter() - t0}
@@ -128,12 +142,20 @@ def main() -> None:
     ap.add_argument(
         "--suite",
         default="paper",
-        choices=["paper", "family"],
-        help="paper: sphere, prism, drop; family: the glass solids of `dataset make`",
+        choices=["paper", "family", "graded"],
+        help="paper: sphere, prism, drop; family: the glass solids of `dataset make`; graded: "
+        "the graded development set (luneburg, plume, three blob clusters, the GRIN rod and "
+        "lens)",
     )
+    ap.add_argument("--views", type=int, default=100, help="views of each dataset")
     ap.add_argument("--res", type=int, default=128, help="image size of the views")
     ap.add_argument("--grid", type=int, default=64, help="grid resolution (voxel or level set)")
-    ap.add_argument("--field", default="levelset", choices=["levelset", "voxel", "hashgrid"])
+    ap.add_argument(
+        "--field",
+        default="levelset",
+        choices=["levelset", "voxel", "hashgrid", "interface", "auto"],
+        help="auto: the command line's default, the model its start chooses",
+    )
     ap.add_argument("--width", type=float, help="interface width, mm (default: the fit's)")
     ap.add_argument(
         "--iterations", type=int, help="default: 100 for Adam, the fit's own for a line search"
@@ -152,7 +174,8 @@ def main() -> None:
     from clrefract import shards
     from clrefract.family import FAMILY
 
-    suite = {"paper": ("sphere", "prism", "drop"), "family": FAMILY}[args.suite]
+    graded = ("luneburg", "plume", "blobs:0", "blobs:1", "blobs:2", "grin-rod", "grin-lens")
+    suite = {"paper": ("sphere", "prism", "drop"), "family": FAMILY, "graded": graded}[args.suite]
     scenes = [s.strip() for s in args.scenes.split(",")] if args.scenes else list(suite)
     rows = []
     if args.merge:
@@ -161,7 +184,7 @@ def main() -> None:
         print(f"== {scene}", file=sys.stderr)
         rows.append(bench_scene(scene, args))
     head = (
-        f"{'scene':12} {'model':8} {'PSNR':>6} {'SSIM':>6} {'D_C mm':>7} {'eta RMSE':>9} "
+        f"{'scene':12} {'model':9} {'PSNR':>6} {'SSIM':>6} {'D_C mm':>7} {'eta RMSE':>9} "
         f"{'index':>6} {'time':>7}"
     )
     print(head)
@@ -169,11 +192,14 @@ def main() -> None:
     for r in rows:
         for model in ("empty", "start", "fit", "ceiling"):
             m = r[model]
+            if m is None:
+                continue
             dc = m.get("chamfer_mm")
             t = m.get("seconds")
             n = r.get("truth_index") if model == "ceiling" else m.get("index")
             print(
-                f"{r['scene']:12} {model:8} {m['test_psnr']:6.2f} {m['test_ssim']:6.3f} "
+                f"{r['scene']:12} {model if model != 'fit' else r.get('model', 'fit'):9.9} "
+                f"{m['test_psnr']:6.2f} {m['test_ssim']:6.3f} "
                 f"{'-' if dc is None else f'{dc:.2f}':>7} {m.get('eta_rmse', float('nan')):9.4f} "
                 f"{'-' if n is None else f'{n:.3f}':>6} {'' if t is None else f'{t:6.0f}s':>7}"
             )

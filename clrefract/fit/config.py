@@ -297,15 +297,17 @@ HELP = {
     "iterations": "steps of the optimiser (default: 600 for Adam; a line search 16, a hash "
     "grid's 32)",
     "batch": "rays per iteration",
-    "lr": "learning rate of voxel values (a level set's index)",
+    "lr": "learning rate of voxel values (a level set's index); with descent, a voxel's "
+    "largest move per step",
     "lr_table": "learning rate of hash tables",
     "lr_mlp": "learning rate of the MLP",
     "lr_final": "learning rates decay exponentially to this fraction",
     "optimizer": "adam, or line-search (level sets, and hash grids from the hull through their "
     "level set: the rays whose adjoint stays tame, a smoothed shape gradient and the best of "
-    "a few moves along it), or descent (interfaces: a smoothed, bounded shape step) (default: "
-    "adam; a hash grid from the hull line-search; an interface descent)",
-    "descent_sigma": "descent: the phi gradient's smoothing, mm",
+    "a few moves along it), or descent (interfaces and voxel grids: a smoothed, bounded step "
+    "of the grid) (default: adam; a hash grid from the hull line-search; an interface and, "
+    "from the command line, a voxel grid descent)",
+    "descent_sigma": "descent: the grid gradient's smoothing, mm",
     "keep_growth": "line search: keep the rays whose adjoint grows at most this factor",
     "grad_sigma": "line search: smooth the shape gradient over these scales, cells (each "
     "weighted by its square)",
@@ -322,7 +324,8 @@ HELP = {
     "from the hull 32768)",
     "reg": "smoothness regulariser weight",
     "sparsity": "weight of an L1 pull of voxel values towards eta = 1 (empty space)",
-    "init": "start from the visual hull of the refraction masks or eta = 1",
+    "init": "start from the visual hull of the refraction masks or eta = 1 (default: hull; "
+    "from the command line, a voxel grid empty)",
     "mask_threshold": "sRGB difference from the straight view that marks a mask pixel",
     "free_cells": "cells around the hull where eta may change (-1: everywhere)",
     "hull_tolerance": "share of the views a hull point may lie outside",
@@ -333,7 +336,7 @@ HELP = {
     "shell_starts": "level sets: also try the hull hollowed to shells 2, 4 and 6 cells deep "
     "(a bowl, a glass)",
     "mask_share": "share of each training batch drawn from the refraction masks (0: all "
-    "pixels alike)",
+    "pixels alike; from the command line, a voxel grid 0.8)",
     "block": "compare training images by blocks of this many pixels a side at first, halving "
     "to single pixels by --block-until (0 or 1: pixels throughout)",
     "block_until": "fraction of the iterations by which the blocks reach single pixels",

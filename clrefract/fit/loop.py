@@ -23,14 +23,16 @@ class FitDiverged(ClrefractError):
         self.result = result
 
 
-def train(fit) -> dict:
-    """Run `fit` (a trainer.Fit, started or resumed) to its end; its results."""
+def train(fit, until: int | None = None) -> dict:
+    """Run `fit` (a trainer.Fit, started or resumed) to its end, its results; or only to
+    iteration `until`, checkpointed there ({}: a probe, which a resumed run continues)."""
     cfg = fit.cfg
-    bar = Progress(cfg.iterations, "fit", unit="it", stream=fit.stream, initial=fit.it)
+    end = cfg.iterations if until is None else min(until, cfg.iterations)
+    bar = Progress(end, "fit", unit="it", stream=fit.stream, initial=min(fit.it, end))
     last_ckpt = fit.it
     try:
         with fit.out.open_metrics() as metrics, StopOnInterrupt() as stop:
-            while fit.it < cfg.iterations and not out_of_patience(fit):
+            while fit.it < end and not out_of_patience(fit):
                 if stop.requested:
                     fit.save_checkpoint()
                     raise ClrefractError(
@@ -38,7 +40,9 @@ def train(fit) -> dict:
                         f"{fit.out}: continue with --resume"
                     )
                 if fit.it == 0 and not fit.best.found:
-                    fit.track_best()  # the start is a candidate too
+                    start_val = fit.track_best()  # the start is a candidate too
+                    if start_val is not None:
+                        fit.record["start_val_loss"] = start_val
                 row = fit.step()
                 val = fit.track_best()
                 if val is not None:
@@ -65,6 +69,8 @@ def train(fit) -> dict:
     finally:
         bar.close()  # a run stopped early (patience) leaves its bar short of the total
     fit.save_checkpoint()
+    if fit.it < cfg.iterations and not fit.record.get("stopped_without_progress"):
+        return {}  # a probe's end, not the run's
     fit.record.update(fit.optimizer.finish(fit))
     fit.record["narrowing"] = judge_narrowing(fit)  # may keep the earlier width's field.npz
     fit.out.save_field(fit.field)

@@ -114,15 +114,17 @@ class AdamSteps:
 
 
 class SmoothedDescent(AdamSteps):
-    """Gradient descent on a sharp surface. A crossing's gradient reaches only the 64 nodes
-    about it and is noisy from node to node: smoothed over descent_sigma mm, it moves the
-    surface as a whole, each step at most lr_phi mm (Adam's per-node scaling moves the
-    noisiest nodes as far as the rest, and took the test views down). The index moves
-    lr_index a step along its gradient's sign. Both decay by a cosine to lr_final."""
+    """Gradient descent on a grid of nodes (a surface's distances, a medium's eta). A ray's
+    gradient reaches only the 64 nodes about it and is noisy from node to node: smoothed over
+    descent_sigma mm, it moves the field as a whole, each step at most the kind's grid rate
+    (Adam's per-node scaling moves the noisiest nodes as far as the rest, and took the test
+    views down). Scalars after the grid (an interface's index) move their rate along their
+    gradient's sign. Both decay by a cosine to lr_final."""
 
     def step(self, fit) -> dict:
         from scipy.ndimage import gaussian_filter
 
+        self._regrid(fit)
         cfg, bound = fit.cfg, fit.bound
         field = bound.field
         idx, side = fit.rays.batch(fit.it)
@@ -130,18 +132,26 @@ class SmoothedDescent(AdamSteps):
         r = fit.objective.loss_and_grad(bound.engine, idx, fit.it, side * side)
         reg, greg = field.regularizer(bound.params)
         grad = r.grad + cfg.reg * greg
+        if bound.free is not None:
+            grad[~bound.free] = 0.0
         if not np.all(np.isfinite(grad)):
             raise FloatingPointError("non-finite gradient")
-        sigma = cfg.descent_sigma / field.spacing
-        shape = field.phi.shape
-        g = gaussian_filter(grad[:-1].reshape(shape), sigma, mode="nearest").ravel()
+        shape = fit.kind.descent_grid(field)
+        n = int(np.prod(shape))
+        grid_rate, scalar_rate = fit.kind.descent_rates(cfg)
+        g = gaussian_filter(
+            grad[:n].reshape(shape), cfg.descent_sigma / field.spacing, mode="nearest"
+        )
+        g = g.ravel()
+        if bound.free is not None:
+            g[~bound.free[:n]] = 0.0
         top = float(np.abs(g).max())
         rate = cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (
             1 + np.cos(np.pi * fit.it / cfg.iterations)
         )
         if top > 0:
-            bound.params[:-1] -= cfg.lr_phi * rate * g / top
-        bound.params[-1] -= cfg.lr_index * rate * np.sign(grad[-1])
+            bound.params[:n] -= grid_rate * rate * g / top
+        bound.params[n:] -= scalar_rate * rate * np.sign(grad[n:])
         fit.kind.project(cfg, bound.params, fit.eta_max, bound.free)
         field.set_data(bound.params)
         bound.upload(fit.it, stepped=True)
@@ -156,9 +166,9 @@ class SmoothedDescent(AdamSteps):
             "psnr": psnr_linear_batch(r.radiance[exited], targets[idx][exited]),
             "rays_per_s": len(idx) / dt,
             "seconds": dt,
-            "eta": field.eta,
             "rate": float(rate),
-            "crossing_evals_per_ray": r.steps / len(idx),
+            "steps_per_ray": r.steps / len(idx),
+            **fit.kind.descent_row(field),
         }
 
 

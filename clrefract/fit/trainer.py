@@ -35,10 +35,10 @@ class Fit:
         self.stream = stream or sys.stderr
         self.runtime = Runtime(device_for(cfg.device), queues=cfg.queues)
         self.box = self.ds.box
-        if self.kind.sized_early:
+        if self.kind.sized_early(cfg):
             self.size_from_images()
             if cfg.step == 0:
-                cfg.step = self.kind.early_step(self.box, cfg.res)  # recorded in config.toml
+                cfg.step = self.kind.early_step(self.box, cfg)  # recorded in config.toml
         self.eta_max = cfg.eta_max or self.ds.scene.eta_range[1] * 1.05
         self.rays = TrainingRays(self.ds, cfg)
         self.objective = Objective(self.rays, cfg.loss, cfg.batch, cfg.seed)

@@ -1,0 +1,35 @@
+"""A graded medium fitted with the command line's defaults descends: the held-out loss of a
+seeded blob cluster falls well below its start's, and the test views gain."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+
+@pytest.fixture(scope="module")
+def blobs_30x32(tmp_path_factory):
+    from clrefract.synth import MakeOptions, make_dataset
+
+    out = tmp_path_factory.mktemp("graded") / "blobs"
+    make_dataset("blobs", out, MakeOptions(views=30, res=32, seed=0))
+    return out
+
+
+def test_a_voxel_fit_of_a_blob_cluster_descends_at_the_defaults(blobs_30x32, tmp_path):
+    """60 steps of the voxel grid's defaults (smoothed descent from the hull, rays from the
+    masks) take the held-out loss below 0.8 of the start's; Adam at its rate of 5e-3 kept
+    this start (0.94 of it at best), as it did on every graded development scene."""
+    from clrefract.cli import main
+
+    run = tmp_path / "run"
+    args = ["fit", str(blobs_30x32), "--out", str(run), "--field-kind", "voxel"]
+    args += ["--grid-res", "16", "--iterations", "60", "--val-views", "4", "-q"]
+    assert main(args) == 0
+    result = json.loads((run / "results.json").read_text())
+    assert result["best_iteration"] > 0, result
+    assert result["best_val_over_start"] < 0.8, result
+    assert result["test_psnr"] > result["start"]["test_psnr"] + 1.0, result
+    cfg = (run / "config.toml").read_text()
+    assert 'optimizer = "descent"' in cfg and "mask_share = 0.8" in cfg
