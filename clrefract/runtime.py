@@ -120,7 +120,7 @@ def list_devices() -> list[DeviceInfo]:
     return out
 
 
-def _pick_device(selector: str | None, probe: bool = True):
+def pick_device(selector: str | None, probe: bool = True):
     """Device from 'P:D', 'P', a name substring, or PYOPENCL_CTX; else the first GPU, else the
     first other device whose driver can build the kernels (probed once, then cached)."""
     cl = _cl()
@@ -171,7 +171,7 @@ class Runtime:
         cl = _cl()
         self.cl = cl
         self.probe_lanes = probe_lanes
-        self.info, self.device = _pick_device(device, probe=probe_lanes)
+        self.info, self.device = pick_device(device, probe=probe_lanes)
         self.context = cl.Context([self.device])
         if queues < 1:
             raise ClrefractError(f"number of queues must be at least 1, got {queues}")

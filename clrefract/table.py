@@ -171,9 +171,9 @@ def _measured_on(run: Path) -> dict:
     out = {"commit": meta.get("commit", commit), "commit_dirty": meta.get("commit_dirty", dirty)}
     out["device"], out["driver"] = meta.get("device"), meta.get("driver")
     if out["device"] is None:  # the device Runtime(None) picks, as the run's did
-        from .runtime import _pick_device
+        from .runtime import pick_device
 
-        info, _ = _pick_device(None)
+        info, _ = pick_device(None)
         out["device"], out["driver"] = info.name, f"{info.platform} {info.driver_version}"
     return {**out, "ended": now()}
 

@@ -326,9 +326,16 @@ def test_hash_grid_from_the_hull_defaults_to_its_line_search_at_half_a_millimetr
     assert (from_file.line_batch, from_file.iterations, from_file.width) == (4096, 3, 0.5)
     (tmp_path / "config.toml").write_text(to_toml(hg))
     assert load_config(tmp_path / "config.toml", {}) == hg
-    for other in (dict(field="hashgrid", init="empty"), dict(field="levelset"), {}):
+    for other in (dict(field="hashgrid", init="empty"), dict(field="levelset")):
         cfg = load_config(None, other)
         assert (cfg.optimizer, cfg.width, cfg.iterations) == ("adam", 1.0, 600), other
+    # a voxel grid (FitConfig's own field) descends, most rays from the masks
+    vox = load_config(None, {})
+    assert (vox.optimizer, vox.lr, vox.mask_share, vox.adjoint_growth_max) == (
+        "descent", 5e-3, 0.8, 3.0
+    )
+    told = load_config(None, dict(optimizer="adam", mask_share=0.0))
+    assert (told.optimizer, told.mask_share, told.iterations) == ("adam", 0.0, 600)
     ls = load_config(None, dict(field="levelset", optimizer="line-search"))
     assert (ls.width, ls.iterations, ls.validate_every, ls.line_batch) == (1.0, 16, 1, 0)
 

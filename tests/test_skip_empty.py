@@ -315,7 +315,8 @@ def test_fit_steps_match_without_skipping(sphere_data, tmp_path, kind):
         cfg = load_config(
             None,
             dict(field=kind, res=16, batch=1024, precision="float64", skip_empty=skip,
-                 occupancy_every=2, init="hull"),
+                 occupancy_every=2, init="hull", optimizer="adam", mask_share=0.0,
+                 adjoint_growth_max=30.0),
         )  # fmt: skip
         fit = Fit(sphere_data, tmp_path / f"run{skip}", cfg)
         fit.bind(_truth(kind, fit.box))

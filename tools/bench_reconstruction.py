@@ -48,7 +48,7 @@ def dataset(scene: str, res: int, root: Path, views: int = 100) -> Path:
     from clrefract.synth import MakeOptions, make_dataset
 
     name, _, seed = scene.partition(":")
-    out = root / f"{name}{seed and '-' + seed}_{res}" + ("" if views == 100 else f"_{views}v")
+    out = root / (f"{name}{seed and '-' + seed}_{res}" + ("" if views == 100 else f"_{views}v"))
     if not (out / "scene.json").is_file():
         make_dataset(name, out, MakeOptions(views=views, res=res, seed=int(seed or 0)))
     return out
