@@ -1,4 +1,5 @@
-"""Pinhole cameras in the NeRF / instant-ngp convention (SPEC sections 5 and 6)."""
+"""Cameras in the NeRF / instant-ngp convention (SPEC sections 5 and 6): pinhole, or with the
+lens distortion of nerfstudio's camera models (OPENCV, FULL_OPENCV, OPENCV_FISHEYE)."""
 
 from __future__ import annotations
 
@@ -12,10 +13,26 @@ import numpy as np
 from .errors import ClrefractError
 from .imageio import PathLike, atomic_path, image_size
 
+# Lens models as nerfstudio / instant-ngp transforms.json name them, with the coefficients
+# each takes. OPENCV and FULL_OPENCV are OpenCV's (rational) model, OPENCV_FISHEYE its
+# equidistant fisheye model (cv2.fisheye).
+CAMERA_MODELS = {
+    "PINHOLE": (),
+    "SIMPLE_PINHOLE": (),
+    "OPENCV": ("k1", "k2", "k3", "p1", "p2"),
+    "FULL_OPENCV": ("k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2"),
+    "OPENCV_FISHEYE": ("k1", "k2", "k3", "k4"),
+}
+_NEWTON_ITERATIONS = 30
+_NEWTON_TOL_PX = 1e-7  # residual of the undistortion, in pixels
+
 
 @dataclass
 class Camera:
-    """Pinhole camera; c2w is camera-to-world with OpenGL axes (looks down -z, y up)."""
+    """Pinhole camera; c2w is camera-to-world with OpenGL axes (looks down -z, y up).
+
+    `distortion` holds the nonzero lens coefficients of `camera_model` (k1.. p2, OpenCV's
+    conventions: normalised image coordinates with y down)."""
 
     width: int
     height: int
@@ -28,12 +45,20 @@ class Camera:
     file_path: str = ""
     exposure: float = 1.0  # linear radiance = decoded pixel value * exposure
     mask_path: str = ""  # the user's object mask (white: object), relative to the JSON
+    camera_model: str = "PINHOLE"
+    distortion: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.c2w = np.array(self.c2w, dtype=np.float64)
         if self.c2w.shape != (4, 4):
             raise ValueError(f"Camera: c2w must be 4x4, got {self.c2w.shape}")
         self.width, self.height = int(self.width), int(self.height)
+        if self.camera_model not in CAMERA_MODELS:
+            raise ValueError(f"Camera: unknown camera_model {self.camera_model!r}")
+        self.distortion = {k: float(v) for k, v in self.distortion.items() if v != 0.0}
+        stray = set(self.distortion) - set(CAMERA_MODELS[self.camera_model])
+        if stray:
+            raise ValueError(f"Camera: {sorted(stray)} are not coefficients of {self.camera_model}")
 
     @property
     def camera_angle_x(self) -> float:
@@ -46,13 +71,159 @@ class Camera:
     def rays(self) -> tuple[np.ndarray, np.ndarray]:
         """Origins and unit directions (H*W, 3) float64, row-major, through pixel centres."""
         j, i = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
-        d_cam = np.stack(
-            [(j - self.cx) / self.fl_x, -(i - self.cy) / self.fl_y, -np.ones_like(j)], axis=-1
-        ).reshape(-1, 3)
+        if self.distortion:
+            xd, yd = (j - self.cx) / self.fl_x, (i - self.cy) / self.fl_y
+            d_cam, bad = undistort(self.camera_model, self.distortion, xd.ravel(), yd.ravel())
+            if bad.any():
+                raise ClrefractError(
+                    f"camera {self.name or self.file_path}: lens distortion cannot be undone "
+                    f"at {int(bad.sum())} pixels (the coefficients fold the image)"
+                )
+        else:
+            d_cam = np.stack(
+                [(j - self.cx) / self.fl_x, -(i - self.cy) / self.fl_y, -np.ones_like(j)], axis=-1
+            ).reshape(-1, 3)
         d = d_cam @ self.c2w[:3, :3].T
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         o = np.broadcast_to(self.c2w[:3, 3], d.shape).copy()
         return o, d
+
+    def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distorted normalised coordinates (OpenCV's: y down) of undistorted ones (x, y):
+        pixel = (cx + fl_x * xd, cy + fl_y * yd). Beyond the image's widest undistorted radius
+        the map goes on radially from there, so that far points cannot fold back into view."""
+        if not self.distortion:
+            return x, y
+        _, _, r_max = _check_lens(self.camera_model, self.distortion, _border(self))
+        r = np.hypot(x, y)
+        s = np.where(r > r_max, r_max / np.maximum(r, 1e-300), 1.0)
+        xd, yd = distort(self.camera_model, self.distortion, x * s, y * s)
+        return xd / s, yd / s
+
+
+def _coeffs(dist: dict) -> dict:
+    return {k: float(dist.get(k, 0.0)) for k in ("k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")}
+
+
+def _radial(model: str, c: dict, r2: np.ndarray) -> np.ndarray:
+    """Radial factor: distorted radius over undistorted radius (fisheye: r2 = theta^2)."""
+    if model == "OPENCV_FISHEYE":
+        return 1.0 + r2 * (c["k1"] + r2 * (c["k2"] + r2 * (c["k3"] + r2 * c["k4"])))
+    num = 1.0 + r2 * (c["k1"] + r2 * (c["k2"] + r2 * c["k3"]))
+    return num / (1.0 + r2 * (c["k4"] + r2 * (c["k5"] + r2 * c["k6"])))
+
+
+def distort(model: str, dist: dict, x: np.ndarray, y: np.ndarray):
+    """OpenCV's distortion of normalised coordinates (x, y) = (X/Z, Y/Z), y down."""
+    c = _coeffs(dist)
+    r2 = x * x + y * y
+    if model == "OPENCV_FISHEYE":
+        r = np.sqrt(r2)
+        theta = np.arctan(r)
+        scale = np.where(
+            r > 0, theta * _radial(model, c, theta * theta) / np.maximum(r, 1e-300), 1.0
+        )
+        return x * scale, y * scale
+    radial = _radial(model, c, r2)
+    xy = x * y
+    xd = x * radial + 2.0 * c["p1"] * xy + c["p2"] * (r2 + 2.0 * x * x)
+    yd = y * radial + c["p1"] * (r2 + 2.0 * y * y) + 2.0 * c["p2"] * xy
+    return xd, yd
+
+
+def undistort(model: str, dist: dict, xd: np.ndarray, yd: np.ndarray):
+    """Camera-frame ray directions (n, 3), OpenGL axes (y up, looking down -z), of distorted
+    normalised coordinates, by Newton's method; and where it did not converge (n,) bool."""
+    c = _coeffs(dist)
+    xd, yd = np.asarray(xd, np.float64), np.asarray(yd, np.float64)
+    if model == "OPENCV_FISHEYE":
+        # theta_d = theta (1 + k1 theta^2 + ...) solved for the angle theta off the axis
+        rd = np.hypot(xd, yd)
+        t = np.minimum(rd, np.pi)
+        for _ in range(_NEWTON_ITERATIONS):
+            t2 = t * t
+            f = t * _radial(model, c, t2) - rd
+            df = 1.0 + t2 * (
+                3 * c["k1"] + t2 * (5 * c["k2"] + t2 * (7 * c["k3"] + t2 * 9 * c["k4"]))
+            )
+            t = np.clip(t - f / np.where(df > 0, df, np.inf), 0.0, np.pi)
+        bad = ~(np.abs(t * _radial(model, c, t * t) - rd) < _NEWTON_TOL_PX * 1e-3)
+        s = np.where(rd > 0, np.sin(t) / np.maximum(rd, 1e-300), 1.0)
+        return np.stack([xd * s, -yd * s, -np.cos(t)], axis=-1), bad
+    x, y = xd.copy(), yd.copy()
+    h = 1e-7
+    for _ in range(_NEWTON_ITERATIONS):
+        fx, fy = distort(model, dist, x, y)
+        ex, ey = fx - xd, fy - yd
+        # Jacobian by central differences: the solution's accuracy rests on the residual alone
+        ax, ay = distort(model, dist, x + h, y)
+        bx, by = distort(model, dist, x - h, y)
+        j11, j21 = (ax - bx) / (2 * h), (ay - by) / (2 * h)
+        ax, ay = distort(model, dist, x, y + h)
+        bx, by = distort(model, dist, x, y - h)
+        j12, j22 = (ax - bx) / (2 * h), (ay - by) / (2 * h)
+        det = j11 * j22 - j12 * j21
+        det = np.where(np.abs(det) > 1e-12, det, np.nan)
+        x = x - (j22 * ex - j12 * ey) / det
+        y = y - (j11 * ey - j21 * ex) / det
+    fx, fy = distort(model, dist, x, y)
+    bad = ~(np.hypot(fx - xd, fy - yd) < _NEWTON_TOL_PX * 1e-3)
+    return np.stack([x, -y, -np.ones_like(x)], axis=-1), bad
+
+
+def _border(cam: Camera) -> tuple:
+    """Distorted normalised coordinates of the image's border pixel centres, and the key that
+    identifies the lens and image."""
+    w, h = cam.width, cam.height
+    cols = np.arange(w) + 0.5
+    rows = np.arange(h) + 0.5
+    j = np.concatenate([cols, cols, np.full(h, 0.5), np.full(h, w - 0.5)])
+    i = np.concatenate([np.full(w, 0.5), np.full(w, h - 0.5), rows, rows])
+    key = (w, h, cam.fl_x, cam.fl_y, cam.cx, cam.cy)
+    return key, (j - cam.cx) / cam.fl_x, (i - cam.cy) / cam.fl_y
+
+
+_LENS_CHECKS: dict = {}
+
+
+def _check_lens(model: str, dist: dict, border) -> tuple:
+    """(ok, reason, r_max): whether the lens maps the image one to one, checked on its
+    border (the undistortion converges there) and radially (the distorted radius grows with
+    the undistorted one out to the widest the image reaches); r_max is that widest radius
+    (fisheye: tan of its angle, capped)."""
+    key = (model, tuple(sorted(dist.items())), border[0])
+    if key in _LENS_CHECKS:
+        return _LENS_CHECKS[key]
+    _, xd, yd = border
+    d, bad = undistort(model, dist, xd, yd)
+    c = _coeffs(dist)
+    if model == "OPENCV_FISHEYE":
+        angle = np.arctan2(np.hypot(d[:, 0], d[:, 1]), -d[:, 2])
+        top = float(np.nanmax(angle)) if np.isfinite(angle).any() else np.pi
+        t = np.linspace(0.0, top * 1.01, 4097)
+        g = t * _radial(model, c, t * t)
+        r_max = math.tan(min(top, 1.55))
+        ok_radial = True
+    else:
+        r = np.hypot(d[:, 0], d[:, 1])
+        top = float(np.nanmax(r)) if np.isfinite(r).any() else 0.0
+        t = np.linspace(0.0, top * 1.01, 4097)
+        den = 1.0 + t * t * (c["k4"] + t * t * (c["k5"] + t * t * c["k6"]))
+        g = t * _radial(model, c, t * t)
+        r_max = top
+        ok_radial = bool((den > 0).all())
+    ok_radial = ok_radial and bool(np.all(np.diff(g) > 0))
+    if bad.any():
+        n = int(bad.sum())
+        out = (False, f"undistortion does not converge at {n} border pixels", r_max)
+    elif not ok_radial:
+        out = (False, "the distorted radius is not increasing over the image", r_max)
+    else:
+        out = (True, "", r_max)
+    if len(_LENS_CHECKS) > 256:
+        _LENS_CHECKS.clear()
+    _LENS_CHECKS[key] = out
+    return out
 
 
 IMAGE_SUFFIXES = (".exr", ".png", ".jpg", ".jpeg")
@@ -131,7 +302,7 @@ def orbit_cameras(
 # ---- transforms JSON ----
 
 _INTRINSIC_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
-_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")
 _IMAGE_EXTS = ("", *IMAGE_SUFFIXES)
 
 
@@ -206,14 +377,29 @@ def _frame_camera(path: Path, top: dict, frame, k: int) -> Camera:
     if not isinstance(file_path, str):
         raise ClrefractError(f"{path}: {where}'file_path' must be a string")
     # Per-frame intrinsics override the top-level ones.
-    p = {key: top[key] for key in _INTRINSIC_KEYS + _DISTORTION_KEYS if key in top}
+    # A frame that names its own camera_model has its own lens: no coefficient of the top's.
+    lens = () if "camera_model" in frame else _DISTORTION_KEYS
+    p = {key: top[key] for key in _INTRINSIC_KEYS + lens if key in top}
     p.update({key: frame[key] for key in _INTRINSIC_KEYS + _DISTORTION_KEYS if key in frame})
     for key in _INTRINSIC_KEYS:  # even those another key overrides: garbage is a mistake
         if key in p:
             _number(path, where, key, p[key])
-    for key in _DISTORTION_KEYS:
-        if key in p and _number(path, where, key, p[key]) != 0.0:
-            raise ClrefractError(f"{path}: {where}lens distortion '{key}' is not supported")
+    dist = {key: _number(path, where, key, p[key]) for key in _DISTORTION_KEYS if key in p}
+    dist = {key: v for key, v in dist.items() if v != 0.0}
+    model = frame.get("camera_model", top.get("camera_model"))
+    if model is None:  # instant-ngp writes coefficients without a model: OpenCV's
+        model = "OPENCV" if dist else "PINHOLE"
+    if not isinstance(model, str) or model.upper() not in CAMERA_MODELS:
+        raise ClrefractError(
+            f"{path}: {where}unknown camera_model {model!r} (known: {', '.join(CAMERA_MODELS)})"
+        )
+    model = model.upper()
+    stray = sorted(set(dist) - set(CAMERA_MODELS[model]))
+    if stray:
+        raise ClrefractError(
+            f"{path}: {where}lens distortion {', '.join(map(repr, stray))} is not a "
+            f"coefficient of camera_model {model}"
+        )
 
     if "w" in p and "h" in p:
         w, h = _size(path, where, "w", p["w"]), _size(path, where, "h", p["h"])
@@ -241,7 +427,7 @@ def _frame_camera(path: Path, top: dict, frame, k: int) -> Camera:
     mask_path = frame.get("mask_path", "")
     if not isinstance(mask_path, str):
         raise ClrefractError(f"{path}: {where}'mask_path' must be a string")
-    return Camera(
+    cam = Camera(
         w,
         h,
         fl_x,
@@ -253,7 +439,16 @@ def _frame_camera(path: Path, top: dict, frame, k: int) -> Camera:
         file_path=file_path,
         exposure=exposure,
         mask_path=mask_path,
+        camera_model=model,
+        distortion=dist,
     )
+    if dist:
+        ok, reason, _ = _check_lens(model, dist, _border(cam))
+        if not ok:
+            raise ClrefractError(
+                f"{path}: {where}lens distortion of camera_model {model} folds the image ({reason})"
+            )
+    return cam
 
 
 def load_transforms(path: PathLike) -> list[Camera]:
@@ -299,7 +494,7 @@ def _refuse_duplicates(path: Path, cams: list[Camera]) -> None:
 
 
 def _intrinsics(cam: Camera) -> dict:
-    return {
+    out = {
         "camera_angle_x": cam.camera_angle_x,
         "w": cam.width,
         "h": cam.height,
@@ -308,6 +503,10 @@ def _intrinsics(cam: Camera) -> dict:
         "cx": cam.cx,
         "cy": cam.cy,
     }
+    if cam.distortion or cam.camera_model not in ("PINHOLE", "SIMPLE_PINHOLE"):
+        out["camera_model"] = cam.camera_model
+        out.update({k: cam.distortion.get(k, 0.0) for k in CAMERA_MODELS[cam.camera_model]})
+    return out
 
 
 def save_transforms(path: PathLike, cameras: list[Camera], extra: dict | None = None) -> None:
@@ -331,8 +530,12 @@ def save_transforms(path: PathLike, cameras: list[Camera], extra: dict | None = 
         if cam.mask_path:
             fr["mask_path"] = cam.mask_path
         intr = _intrinsics(cam)
-        # Only cameras that differ from the first carry their own intrinsics.
-        if any(intr[key] != top[key] for key in intr):
+        # Only cameras that differ from the first carry their own intrinsics, with every
+        # lens key the first has (a pinhole among distorted cameras: its model and zeros).
+        lens = ("camera_model", *_DISTORTION_KEYS)
+        if any(intr.get(key) != top.get(key) for key in set(intr) | set(lens)):
+            intr.setdefault("camera_model", cam.camera_model)
+            intr.update({k: 0.0 for k in _DISTORTION_KEYS if k in top and k not in intr})
             fr.update(intr)
         frames.append(fr)
     top["frames"] = frames

@@ -394,6 +394,7 @@ def _cmd_dataset_import(args) -> int:
         box=args.box,
         eta_range=tuple(args.eta_range),
         envmap=Path(args.envmap) if args.envmap else None,
+        env_rotation=args.env_rotation,
     )
     print(json.dumps(info, indent=2))
     return 0
@@ -758,7 +759,7 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         "it, --radius away), written as frames and as orbit.gif",
     )
     p.add_argument("--only", type=int, nargs="+", help="render only these view indices")
-    p.add_argument("--envmap", help="HDR equirectangular EXR (default: procedural)")
+    p.add_argument("--envmap", help="HDR equirectangular EXR or .hdr (default: procedural)")
     p.add_argument("--seed", type=int, default=0, help="seed of the procedural environment")
     p.add_argument("--out", default="renders", help="output folder")
     p.add_argument(
@@ -800,7 +801,7 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         default=None,
         help="family shapes: rotation a/b/c in degrees about x, y, z (default per shape)",
     )
-    p.add_argument("--envmap", help="your own equirectangular EXR instead")
+    p.add_argument("--envmap", help="your own equirectangular EXR or .hdr instead")
     p.add_argument("--env-width", type=int, default=2048, help="procedural map width")
     p.add_argument(
         "--radius",
@@ -834,7 +835,19 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         metavar=("LO", "HI"),
         help="the range of eta the object may hold",
     )
-    p.add_argument("--envmap", help="equirectangular HDR EXR (default: SRC/envmap.exr)")
+    p.add_argument(
+        "--envmap",
+        help="equirectangular HDR panorama, EXR or Radiance .hdr (default: SRC/envmap.exr "
+        "or SRC/envmap.hdr)",
+    )
+    p.add_argument(
+        "--env-rotation",
+        type=float,
+        nargs=3,
+        metavar=("RX", "RY", "RZ"),
+        help="the panorama's orientation in the world: degrees about x, then y, then z "
+        "(scene.json's envmap_rotation)",
+    )
     p.set_defaults(func=_cmd_dataset_import)
     p = ds.add_parser("check", help="validate a dataset folder and name every problem")
     p.add_argument("dir")

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import IMAGE_SUFFIXES, Camera, frame_stem, load_transforms
-from .envmap import EnvMap
+from .envmap import EnvMap, rotation_matrix
 from .errors import ClrefractError
 from .fields.base import Box
 from .imageio import atomic_path, read_frame_rgba
@@ -42,6 +42,7 @@ class Scene:
     eta_range: tuple[float, float]
     object: dict | None = None  # the analytic object of a synthetic scene
     envmap: str = "envmap.exr"
+    envmap_rotation: list | None = None  # [rx, ry, rz] degrees or a 3x3 matrix; None: none
     train: str = "transforms_train.json"
     test: str = "transforms_test.json"  # the train file itself: every holdout_every-th frame
     ground_truth: dict = field(default_factory=dict)
@@ -59,6 +60,7 @@ class Scene:
             "eta_range": list(self.eta_range),
             "object": self.object,
             "envmap": self.envmap,
+            **({"envmap_rotation": self.envmap_rotation} if self.envmap_rotation else {}),
             "train": self.train,
             "test": self.test,
             "ground_truth": self.ground_truth,
@@ -71,6 +73,10 @@ class Scene:
         if self.test == self.train:
             d["holdout_every"] = self.holdout_every
         return d
+
+    def envmap_matrix(self) -> np.ndarray | None:
+        """The panorama's rotation into the world (3x3), None without one."""
+        return None if self.envmap_rotation is None else rotation_matrix(self.envmap_rotation)
 
 
 def write_scene(root: Path, scene: Scene) -> None:
@@ -212,6 +218,12 @@ def read_scene(root: Path) -> Scene:
     envmap = _string(path, d, "envmap", "envmap.exr")
     if "envmap" not in d:
         assumed.append("envmap: envmap.exr")
+    env_rotation = d.get("envmap_rotation")
+    if env_rotation is not None:
+        try:
+            rotation_matrix(env_rotation)
+        except ValueError as exc:
+            raise ClrefractError(f"{path}: 'envmap_rotation' {exc}") from None
     train, test = _transforms_files(root, d, path, assumed)
     holdout = d.get("holdout_every", DEFAULT_HOLDOUT)
     if isinstance(holdout, bool) or not isinstance(holdout, int) or holdout < 2:
@@ -223,12 +235,14 @@ def read_scene(root: Path) -> Scene:
     if not isinstance(gt, dict):
         raise ClrefractError(f"{path}: 'ground_truth' must be an object")
     known = {"format", "version", "units", "box", "eta_range", "object", "envmap", "train"}
+    known |= {"envmap_rotation"}
     known |= {"test", "ground_truth", "frames", "holdout_every"}
     return Scene(
         box=box,
         eta_range=(float(eta[0]), float(eta[1])),
         object=d.get("object"),
         envmap=envmap,
+        envmap_rotation=env_rotation,
         train=train,
         test=test,
         ground_truth=gt,
@@ -431,7 +445,7 @@ class Dataset:
         return self.scene.box
 
     def envmap(self) -> EnvMap:
-        return EnvMap.from_exr(self.root / self.scene.envmap)
+        return EnvMap.from_file(self.root / self.scene.envmap, self.scene.envmap_matrix())
 
     def frame_path(self, cam: Camera) -> Path:
         return frame_image_path(self.root, cam, self.suffix)
@@ -579,7 +593,7 @@ def check_dataset(root, notes: list[str] | None = None, box: Box | None = None) 
     notes.extend(f"assumed {a}" for a in scene.assumed if box is None or "box" not in a)
     env = None
     try:
-        env = EnvMap.from_exr(root / scene.envmap)
+        env = EnvMap.from_file(root / scene.envmap, scene.envmap_matrix())
     except ClrefractError as exc:
         problems.append(str(exc))
     splits = _splits(root, scene, problems)

@@ -6,7 +6,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from .errors import ClrefractError
-from .imageio import PathLike, read_exr_rgb, write_exr_rgb
+from .imageio import HDR_SUFFIXES, PathLike, read_exr_rgb, read_hdr_rgb, write_exr_rgb
 
 
 def pixel_directions(width: int, height: int) -> np.ndarray:
@@ -25,14 +25,47 @@ def pixel_directions(width: int, height: int) -> np.ndarray:
 MIN_WIDTH = 8  # pixels of the smallest environment map read from a file
 
 
-class EnvMap:
-    """Linear radiance over the sphere, stored as an (H, W, 3) float32 lat-long image."""
+def rotation_matrix(value) -> np.ndarray:
+    """3x3 rotation from scene.json's `envmap_rotation`: [rx, ry, rz] degrees, turned about
+    the world's x, then y, then z axis (R = Rz Ry Rx), or a 3x3 rotation matrix. ValueError
+    for anything else."""
+    try:
+        m = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        m = np.zeros(0)
+    if m.shape == (3,) and np.isfinite(m).all():
+        cx, cy, cz = np.cos(np.radians(m))
+        sx, sy, sz = np.sin(np.radians(m))
+        rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+        ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+        rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+        return rz @ ry @ rx
+    if m.shape == (3, 3) and np.isfinite(m).all():
+        if np.allclose(m.T @ m, np.eye(3), atol=1e-6) and np.linalg.det(m) > 0:
+            return m
+        raise ValueError("is a 3x3 matrix but not a rotation (scaled, sheared or mirrored)")
+    raise ValueError(f"must be [rx, ry, rz] in degrees or a 3x3 rotation matrix, got {value!r}")
 
-    def __init__(self, image: np.ndarray):
+
+class EnvMap:
+    """Linear radiance over the sphere, stored as an (H, W, 3) float32 lat-long image.
+
+    `rotation` (3x3, or None for none) turns the panorama's own frame into the world's: the
+    world direction d sees the panorama's pixel in direction rotation^T d."""
+
+    def __init__(self, image: np.ndarray, rotation: np.ndarray | None = None):
         image = np.ascontiguousarray(image, dtype=np.float32)
         if image.ndim != 3 or image.shape[2] != 3 or image.shape[0] < 1 or image.shape[1] < 1:
             raise ValueError(f"EnvMap: expected an (H, W, 3) image, got {image.shape}")
         self.image = image
+        self.rotation = None if rotation is None else np.asarray(rotation, np.float64)
+        if self.rotation is not None and np.array_equal(self.rotation, np.eye(3)):
+            self.rotation = None
+
+    def to_panorama(self, directions: np.ndarray) -> np.ndarray:
+        """World directions (N, 3) float64 in the panorama's own frame."""
+        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        return d if self.rotation is None else d @ self.rotation
 
     @property
     def height(self) -> int:
@@ -43,8 +76,10 @@ class EnvMap:
         return self.image.shape[1]
 
     @classmethod
-    def from_exr(cls, path: PathLike) -> EnvMap:
-        img = read_exr_rgb(path)
+    def from_file(cls, path: PathLike, rotation: np.ndarray | None = None) -> EnvMap:
+        """The map of an EXR or a Radiance .hdr file (by its extension)."""
+        is_hdr = str(path).lower().endswith(HDR_SUFFIXES)
+        img = read_hdr_rgb(path) if is_hdr else read_exr_rgb(path)
         if not np.isfinite(img).all():
             raise ClrefractError(f"{path}: environment map has NaN or infinite pixels")
         h, w = img.shape[:2]
@@ -54,7 +89,9 @@ class EnvMap:
                 f"{path}: environment map is {w}x{h} pixels; a lat-long map needs at least "
                 f"{MIN_WIDTH}x{MIN_WIDTH // 2}"
             )
-        return cls(img)
+        return cls(img, rotation)
+
+    from_exr = from_file  # the name it had when only EXR was read
 
     def save(self, path: PathLike) -> None:
         write_exr_rgb(path, self.image)
@@ -64,7 +101,7 @@ class EnvMap:
 
         A zero vector looks at the horizon (u = 0.5, v = 0.5) rather than producing NaN.
         """
-        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        d = self.to_panorama(directions)
         n = np.linalg.norm(d, axis=1)
         d = d / np.maximum(n, 1e-300)[:, None]
         h, w = self.height, self.width
@@ -90,11 +127,11 @@ class EnvMap:
     def blurred(self, sigma_px: float) -> EnvMap:
         """A copy blurred by a Gaussian of sigma_px pixels, wrapping in u, for coarse-to-fine."""
         if sigma_px <= 0:
-            return EnvMap(self.image.copy())
+            return EnvMap(self.image.copy(), self.rotation)
         out = gaussian_filter(
             self.image, sigma=(sigma_px, sigma_px, 0), mode=("nearest", "wrap", "nearest")
         )
-        return EnvMap(out)
+        return EnvMap(out, self.rotation)
 
     @classmethod
     def procedural(cls, width: int = 1024, height: int = 512, seed: int = 0) -> EnvMap:

@@ -117,6 +117,9 @@ def project(cam: Camera, pts: np.ndarray):
     p = pts @ w2c[:3, :3].T + w2c[:3, 3]
     depth = -p[:, 2]
     z = np.where(depth > 1e-9, depth, 1.0)
+    if cam.distortion:  # through the lens (OpenCV's image coordinates: y down)
+        x, y = cam.distort(p[:, 0] / z, -p[:, 1] / z)
+        return cam.cy + cam.fl_y * y, cam.cx + cam.fl_x * x, depth
     col = cam.cx + cam.fl_x * p[:, 0] / z
     row = cam.cy - cam.fl_y * p[:, 1] / z
     return row, col, depth

@@ -104,6 +104,82 @@ def read_exr_rgba(path: PathLike) -> tuple[np.ndarray, np.ndarray | None]:
     return rgb, alpha
 
 
+HDR_SUFFIXES = (".hdr", ".pic", ".rgbe")
+
+
+def read_hdr_rgb(path: PathLike) -> np.ndarray:
+    """Linear RGB (H, W, 3) float32 of a Radiance RGBE (.hdr) file: flat or run-length
+    encoded scanlines, as Radiance and OpenCV write them. Values are decoded as OpenCV does
+    (mantissa * 2^(exponent - 136)); an EXPOSURE line is not undone, as by most readers."""
+    path = Path(path)
+    if not path.is_file():
+        raise ClrefractError(f"{path}: .hdr file not found")
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise ClrefractError(f"{path}: cannot read ({e.strerror or e})") from None
+
+    def bad(why: str) -> ClrefractError:
+        return ClrefractError(f"{path}: not a valid Radiance .hdr file ({why})")
+
+    if not data.startswith(b"#?"):
+        raise bad("no '#?' signature")
+    end = data.find(b"\n\n")
+    if end < 0:
+        raise bad("header does not end")
+    fmt = [ln for ln in data[:end].split(b"\n") if ln.startswith(b"FORMAT=")]
+    if fmt and fmt[-1].strip() != b"FORMAT=32-bit_rle_rgbe":
+        raise bad(f"{fmt[-1].decode('latin-1')}: only 32-bit_rle_rgbe is read")
+    eol = data.find(b"\n", end + 2)
+    size = data[end + 2 : eol if eol >= 0 else len(data)].split()
+    if len(size) != 4 or size[0] not in (b"-Y", b"+Y") or size[2] != b"+X":
+        raise bad(f"resolution line {b' '.join(size).decode('latin-1')!r} is not '-Y H +X W'")
+    try:
+        h, w = int(size[1]), int(size[3])
+    except ValueError:
+        raise bad("resolution is not two numbers") from None
+    if h < 1 or w < 1:
+        raise bad(f"size {w}x{h}")
+    buf = np.frombuffer(data, np.uint8, offset=eol + 1) if eol >= 0 else np.zeros(0, np.uint8)
+    rgbe = np.empty((h, w, 4), np.uint8)
+    pos, n = 0, len(buf)
+    for y in range(h):
+        if 8 <= w < 32768 and pos + 4 <= n and buf[pos] == 2 and buf[pos + 1] == 2:
+            if (int(buf[pos + 2]) << 8 | int(buf[pos + 3])) != w or buf[pos + 2] & 0x80:
+                raise bad(f"scanline {y} has the wrong length")
+            pos += 4
+            for c in range(4):
+                x = 0
+                while x < w:
+                    if pos >= n:
+                        raise bad("file is truncated")
+                    count = int(buf[pos])
+                    if count > 128:  # a run of one value
+                        count -= 128
+                        if x + count > w or pos + 1 >= n:
+                            raise bad(f"scanline {y} overruns")
+                        rgbe[y, x : x + count, c] = buf[pos + 1]
+                        pos += 2
+                    else:  # literal bytes
+                        if count == 0 or x + count > w or pos + 1 + count > n:
+                            raise bad(f"scanline {y} overruns")
+                        rgbe[y, x : x + count, c] = buf[pos + 1 : pos + 1 + count]
+                        pos += 1 + count
+                    x += count
+        else:  # flat pixels (old-style run-length encoding is not read)
+            if pos + 4 * w > n:
+                raise bad("file is truncated")
+            line = buf[pos : pos + 4 * w].reshape(w, 4)
+            if np.any((line[:, 0] == 1) & (line[:, 1] == 1) & (line[:, 2] == 1)):
+                raise bad("old-style run-length encoding is not read")
+            rgbe[y] = line
+            pos += 4 * w
+    e = rgbe[..., 3].astype(np.int32)
+    scale = np.where(e > 0, np.ldexp(1.0, e - 136), 0.0).astype(np.float32)
+    rgb = rgbe[..., :3].astype(np.float32) * scale[..., None]
+    return rgb[::-1].copy() if size[0] == b"+Y" else rgb
+
+
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 # an 8-bit value at or above this clipped in the camera: its radiance is unknown
 SATURATED = 254 / 255

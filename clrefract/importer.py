@@ -35,9 +35,10 @@ from .dataset import (
     mask_file,
     write_scene,
 )
+from .envmap import EnvMap
 from .errors import ClrefractError
 from .fields.base import Box
-from .imageio import ensure_out_dir
+from .imageio import HDR_SUFFIXES, ensure_out_dir
 
 WRITES = (SCENE_FILE, "transforms_train.json", "transforms_test.json")
 
@@ -143,6 +144,7 @@ def import_capture(
     box: list[float] | None = None,
     eta_range: tuple[float, float] = DEFAULT_ETA_RANGE,
     envmap: Path | None = None,
+    env_rotation: list[float] | None = None,
 ) -> dict:
     """Write a dataset folder `out` from a capture `src`; returns what was done."""
     src, out = Path(src), Path(out)
@@ -157,11 +159,19 @@ def import_capture(
         raise ClrefractError(
             f"{out}: already holds a dataset ({', '.join(clash)}); choose another --out"
         )
-    env = Path(envmap) if envmap else root / "envmap.exr"
+    if envmap:
+        env = Path(envmap)
+    else:
+        env = next((e for e in (root / "envmap.exr", root / "envmap.hdr") if e.is_file()), None)
+        env = env or root / "envmap.exr"
     if not env.is_file():
         raise ClrefractError(
             f"{env}: environment map not found; give the HDR panorama with --envmap"
         )
+    if env_rotation is not None and not finite_numbers(env_rotation, 3):
+        raise ClrefractError(f"--env-rotation must be three numbers (degrees), got {env_rotation}")
+    EnvMap.from_file(env)  # a panorama that cannot be read is refused before any copy
+    env_name = "envmap.hdr" if env.suffix.lower() in HDR_SUFFIXES else "envmap.exr"
     cams = {"train": [_scaled(c, scale) for c in train], "test": [_scaled(c, scale) for c in test]}
     everyone = cams["train"] + cams["test"]
     ngp = _ngp_keys(single) if single is not None else None
@@ -182,12 +192,14 @@ def import_capture(
             elif folder_mask is not None:  # masks/<frame>: the same name beside the copy
                 (out / MASK_DIR).mkdir(exist_ok=True)
                 shutil.copyfile(folder_mask, out / MASK_DIR / folder_mask.name)
-    shutil.copyfile(env, out / "envmap.exr")
+    shutil.copyfile(env, out / env_name)
     save_transforms(out / "transforms_train.json", cams["train"])
     save_transforms(out / "transforms_test.json", cams["test"])
     scene = Scene(
         box=the_box,
         eta_range=tuple(eta_range),
+        envmap=env_name,
+        envmap_rotation=None if env_rotation is None else [float(a) for a in env_rotation],
         frames=hint,
         extra={
             "import": {

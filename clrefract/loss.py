@@ -15,7 +15,7 @@ from .envmap import EnvMap
 def envmap_lookup_jacobian(env: EnvMap, directions: np.ndarray):
     """Radiance (n, 3) and its derivative with respect to the unit direction (n, 3, 3):
     jac[i, c, k] = d radiance_c / d d_k, for the bilinear lookup of SPEC section 6."""
-    d = np.asarray(directions, np.float64)
+    d = env.to_panorama(directions)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     h, w = env.height, env.width
     rxy2 = np.maximum(d[:, 0] ** 2 + d[:, 1] ** 2, 1e-30)
@@ -45,6 +45,8 @@ def envmap_lookup_jacobian(env: EnvMap, directions: np.ndarray):
     drow_dd = np.zeros_like(d)
     drow_dd[:, 2] = drow_dz
     jac = d_col[:, :, None] * dcol_dd[:, None, :] + d_row[:, :, None] * drow_dd[:, None, :]
+    if env.rotation is not None:  # radiance of R^T d: the chain rule's R^T on the right
+        jac = jac @ env.rotation.T
     return rad, jac
 
 

@@ -267,7 +267,7 @@ def test_transforms_problems(ds, tmp_path, capsys):
         (lambda d: d["frames"].append(dict(d["frames"][0])), "repeats the image of frames[0]"),
         (lambda d: d["frames"][0].update(transform_matrix=[[1, 0], [0, 1]]), "4x4"),
         (lambda d: d["frames"][1].update(file_path=3), "file_path"),
-        (lambda d: d.update(k1=0.1), "distortion"),
+        (lambda d: d.update(k1=-5.0), "distortion", "folds"),
         (lambda d: d.update(w=12.5), "whole number"),
     ]
     for edit, *needles in cases:

@@ -258,10 +258,10 @@ BAD = {
             "fl_x": 5.0,
             "w": 8,
             "h": 8,
-            "k1": 0.1,
+            "k1": -5.0,
             "frames": [{"file_path": "a", "transform_matrix": EYE}],
         },
-        "distortion",
+        "distortion.*folds",
     ),
 }
 
