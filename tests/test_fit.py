@@ -332,7 +332,10 @@ def test_hash_grid_from_the_hull_defaults_to_its_line_search_at_half_a_millimetr
     # a voxel grid (FitConfig's own field) descends, most rays from the masks
     vox = load_config(None, {})
     assert (vox.optimizer, vox.lr, vox.mask_share, vox.adjoint_growth_max) == (
-        "descent", 5e-3, 0.8, 3.0
+        "descent",
+        5e-3,
+        0.8,
+        3.0,
     )
     told = load_config(None, dict(optimizer="adam", mask_share=0.0))
     assert (told.optimizer, told.mask_share, told.iterations) == ("adam", 0.0, 600)

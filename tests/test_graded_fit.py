@@ -33,3 +33,26 @@ def test_a_voxel_fit_of_a_blob_cluster_descends_at_the_defaults(blobs_30x32, tmp
     assert result["test_psnr"] > result["start"]["test_psnr"] + 1.0, result
     cfg = (run / "config.toml").read_text()
     assert 'optimizer = "descent"' in cfg and "mask_share = 0.8" in cfg
+
+
+def test_a_faint_medium_gets_a_rate_of_its_own(tmp_path):
+    """A gas-like blob (index 1.003): the descent's rate comes down from the default 5e-3
+    (a step of which overshoots its whole index) at the first step and wherever the held-out
+    loss rises, is kept in config.toml, and the held-out loss falls below 0.8 of the
+    start's."""
+    from clrefract.cli import main
+    from clrefract.fields.analytic import Blobs
+    from clrefract.fit import load_config
+    from clrefract.synth import MakeOptions, make_dataset
+
+    data = tmp_path / "gas"
+    gas = Blobs(centers=[[3.0, -2.0, 4.0]], amplitudes=[3e-3], sigmas=[9.0])
+    make_dataset("gas", data, MakeOptions(views=30, res=32), obj=gas)
+    run = tmp_path / "run"
+    args = ["fit", str(data), "--out", str(run), "--field-kind", "voxel"]
+    args += ["--grid-res", "16", "--iterations", "60", "--val-views", "4", "-q"]
+    assert main(args) == 0
+    rate = load_config(run / "config.toml", {}).lr
+    assert rate <= 5e-3 / 4, rate
+    result = json.loads((run / "results.json").read_text())
+    assert result["best_val_over_start"] < 0.8, result

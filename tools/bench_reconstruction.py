@@ -58,7 +58,7 @@ def bench_scene(scene: str, args) -> dict:
     import shutil
 
     from clrefract.fields.voxel import VoxelGrid
-    from clrefract.fit import load_config, prepare_fit
+    from clrefract.fit import FitDiverged, load_config, prepare_fit
     from clrefract.report import scene_truth, score_field
 
     data = dataset(scene, args.res, Path(args.data), args.views)
@@ -121,7 +121,10 @@ def bench_scene(scene: str, args) -> dict:
         )
     row["ceiling"] = score_field(fit, ceiling) if ceiling is not None else None
     t0 = time.perf_counter()
-    res = fit.run()
+    try:
+        res = fit.run()
+    except FitDiverged as exc:  # its best field is scored all the same
+        res = {**exc.result, "diverged": str(exc)}
     row["fit"] = {**res, "seconds": prepared + time.perf_counter() - t0}
     if cfg.field == "levelset" or cfg.init == "hull" and cfg.field == "hashgrid":
         # one index inside the surface: how far from the truth

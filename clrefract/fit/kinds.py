@@ -180,6 +180,9 @@ class FieldKind:
         """What a descent step adds to its metrics row."""
         return {}
 
+    # whether a descent's first step chooses the run's rate (SmoothedDescent._calibrate)
+    calibrates_descent = False
+
     # --- empty-space skipping while it trains (occupancy.py) ---------------------------------
     def occupancy_slack(self, every: int, lr_phi: float) -> float:
         """How far the field's surface may move between two rebuilds (mm)."""
@@ -205,6 +208,7 @@ class FieldKind:
 class VoxelKind(FieldKind):
     name = "voxel"
     grid = True
+    calibrates_descent = True  # eta's contrast, unlike a surface's move in mm, spans 400x
     optimizers = ("adam", "descent")
     optimizer_refusal = (
         "optimizer 'line-search' moves a surface (a level set's, or the one a hash grid "

@@ -43,10 +43,12 @@ def train(fit, until: int | None = None) -> dict:
                     start_val = fit.track_best()  # the start is a candidate too
                     if start_val is not None:
                         fit.record["start_val_loss"] = start_val
+                        fit.optimizer.validated(fit, start_val)
                 row = fit.step()
                 val = fit.track_best()
                 if val is not None:
                     row["val_loss"] = val
+                    fit.optimizer.validated(fit, val)
                 metrics.write(json.dumps(row) + "\n")
                 metrics.flush()
                 blown = blown_up(fit, val)

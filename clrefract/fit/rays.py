@@ -19,6 +19,7 @@ class Tag:
     START = (7,)  # the start search's mask rays
     VALIDATION = (11,)  # the held-out batch
     SIZE_SEARCH = (2, 3000)  # the size and index search's mask rays
+    CALIBRATION = (13,)  # the mask rays that choose a descent's rate
 
     @staticmethod
     def line_step(it: int) -> tuple:
