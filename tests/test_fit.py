@@ -127,6 +127,7 @@ def test_absurd_learning_rate_stops_with_the_best_field(blob_dataset, tmp_path, 
     cfg.write_text(
         "iterations = 20\nres = 8\nstep = 2.0\ninit = 'empty'\nbatch = 4096\n"
         "validate_every = 5\ncheckpoint_every = 10\ntest_views = 1\nlr = 10.0\n"
+        "optimizer = 'adam'\nmask_share = 0.0\nadjoint_growth_max = 30.0\n"
     )
     assert main(["fit", str(blob_dataset), "--out", str(run), "--config", str(cfg)]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]

@@ -17,8 +17,13 @@ def load_config(path: Path | None, overrides: dict) -> FitConfig:
     items: dict = read_toml(path) if path is not None else {}
     items.update({k: v for k, v in overrides.items() if v is not None})
     kind = kind_named(items.get("field", FitConfig.field))
+    given = frozenset(items) - {"field"}
     kind.defaults(items)
     cfg = coerced(items)
+    if kind.candidates:
+        # what the file and flags said, for each candidate's own defaults to fill the rest
+        # (a value equal to FitConfig's default is no less given)
+        cfg.given = given
     normalise(cfg)
     cfg.validate()
     kind.validate(cfg)

@@ -487,11 +487,14 @@ KINDS = {
 
 def candidate_config(cfg: FitConfig, name: str) -> FitConfig:
     """An automatic run's configuration for one candidate kind: the values it was given
-    (those off FitConfig's defaults), then that kind's defaults."""
+    (load_config's record; else those off FitConfig's defaults), then that kind's
+    defaults."""
+    given = getattr(cfg, "given", None)  # load_config's record of the keys it was given
     items = {
         f.name: getattr(cfg, f.name)
         for f in fields(FitConfig)
-        if getattr(cfg, f.name) != f.default and f.name != "field"
+        if f.name != "field"
+        and (f.name in given if given is not None else getattr(cfg, f.name) != f.default)
     }
     items["field"] = name
     KINDS[name].defaults(items)
