@@ -340,7 +340,9 @@ HELP = {
     "block": "compare training images by blocks of this many pixels a side at first, halving "
     "to single pixels by --block-until (0 or 1: pixels throughout)",
     "block_until": "fraction of the iterations by which the blocks reach single pixels",
-    "env_blur": "initial environment blur, pixels, sharpened to 0",
+    "env_blur": "initial environment blur, pixels, sharpened to 0 (the photographs are "
+    "blurred by the same angle, exact for straight rays only: under a strong lens the "
+    "blurred views prefer empty space)",
     "blur_until": "fraction of the iterations over which the blur goes to 0",
     "step": "integrator step, mm (default: 0, automatic: width/4 for level sets and hash "
     "grids, finer above index 1.5; half a cell of the final grid for voxel grids)",
