@@ -181,11 +181,13 @@ class SmoothedDescent(AdamSteps):
             **fit.kind.descent_row(field),
         }
 
+    last_val = None  # the previous held-out loss this run measured
+
     def validated(self, fit, loss: float) -> None:
         """A calibrated rate halves (in config.toml) each time the held-out loss rises from
         one validation to the next: a first step's best length, repeated, overshot a faint
         blob's whole index (1.003: the test views lost 2.2 dB in 60 steps)."""
-        last, self.last_val = getattr(self, "last_val", None), loss
+        last, self.last_val = self.last_val, loss
         if fit.kind.calibrates_descent and last is not None and loss > last:
             fit.cfg.lr /= 2
             fit.out.write_config(fit.cfg)
