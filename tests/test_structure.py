@@ -143,3 +143,17 @@ def test_no_private_name_of_the_fit_is_reached_from_another_module():
             if not (on_self and m in defined[node.attr]):
                 bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {ast.unparse(node)}")
     assert not bad, "the fit's private names reached from outside:\n" + "\n".join(bad)
+
+
+def test_every_package_is_in_the_wheel():
+    """A plain (non-editable) install holds only the packages pyproject.toml lists: a package
+    left out imports from a checkout but not from a user's site-packages."""
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        import tomli as tomllib
+
+    setup = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    listed = set(setup["packages"])
+    found = {module_name(p) for p in (ROOT / "clrefract").rglob("__init__.py")}
+    assert found - listed == set(), f"pyproject.toml's packages leave out {sorted(found - listed)}"
