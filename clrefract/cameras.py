@@ -44,6 +44,7 @@ class Camera:
     name: str = ""
     file_path: str = ""
     exposure: float = 1.0  # linear radiance = decoded pixel value * exposure
+    white_balance: tuple = (1.0, 1.0, 1.0)  # RGB gains, after the exposure
     mask_path: str = ""  # the user's object mask (white: object), relative to the JSON
     camera_model: str = "PINHOLE"
     distortion: dict = field(default_factory=dict)
@@ -53,6 +54,13 @@ class Camera:
         if self.c2w.shape != (4, 4):
             raise ValueError(f"Camera: c2w must be 4x4, got {self.c2w.shape}")
         self.width, self.height = int(self.width), int(self.height)
+        self.white_balance = tuple(float(v) for v in self.white_balance)
+        if len(self.white_balance) != 3 or not all(
+            math.isfinite(v) and v > 0 for v in self.white_balance
+        ):
+            raise ValueError(
+                f"Camera: white_balance must be 3 positive numbers, got {self.white_balance}"
+            )
         if self.camera_model not in CAMERA_MODELS:
             raise ValueError(f"Camera: unknown camera_model {self.camera_model!r}")
         self.distortion = {k: float(v) for k, v in self.distortion.items() if v != 0.0}
@@ -424,6 +432,19 @@ def _frame_camera(path: Path, top: dict, frame, k: int) -> Camera:
     name = Path(file_path).name if file_path else f"frame_{k:03d}"
     exposure = frame.get("exposure_scale", top.get("exposure_scale", 1.0))
     exposure = _number(path, where, "exposure_scale", exposure, positive=True)
+    white_balance = frame.get("white_balance", top.get("white_balance", [1.0, 1.0, 1.0]))
+    if not (
+        isinstance(white_balance, list)
+        and len(white_balance) == 3
+        and all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+            for v in white_balance
+        )
+    ):
+        raise ClrefractError(
+            f"{path}: {where}'white_balance' must be 3 positive numbers (R, G, B gains), "
+            f"got {white_balance!r}"
+        )
     mask_path = frame.get("mask_path", "")
     if not isinstance(mask_path, str):
         raise ClrefractError(f"{path}: {where}'mask_path' must be a string")
@@ -438,6 +459,7 @@ def _frame_camera(path: Path, top: dict, frame, k: int) -> Camera:
         name=name,
         file_path=file_path,
         exposure=exposure,
+        white_balance=tuple(white_balance),
         mask_path=mask_path,
         camera_model=model,
         distortion=dist,
@@ -527,6 +549,8 @@ def save_transforms(path: PathLike, cameras: list[Camera], extra: dict | None = 
         }
         if cam.exposure != 1.0:
             fr["exposure_scale"] = cam.exposure
+        if cam.white_balance != (1.0, 1.0, 1.0):
+            fr["white_balance"] = list(cam.white_balance)
         if cam.mask_path:
             fr["mask_path"] = cam.mask_path
         intr = _intrinsics(cam)

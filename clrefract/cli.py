@@ -1,7 +1,7 @@
 """clrefract: recover index-of-refraction fields from photographs through curved rays.
 
-Commands: devices, render, dataset make, dataset import, dataset check, fit, eval, report,
-table, bench."""
+Commands: devices, render, dataset make, dataset import, dataset export-colmap, dataset check,
+fit, eval, report, table, bench."""
 
 from __future__ import annotations
 
@@ -379,6 +379,10 @@ def _cmd_dataset_make(args) -> int:
     )
     if args.full:
         opt.views, opt.res = 100, 800
+    if args.realistic or args.flaws is not None:
+        from .realistic import Flaws, parse_flaws
+
+        opt.realistic = parse_flaws(args.flaws or "", Flaws() if args.realistic else None)
     info = make_dataset(args.scene, Path(args.out), opt)
     print(json.dumps(info, indent=2))
     return 0
@@ -395,7 +399,17 @@ def _cmd_dataset_import(args) -> int:
         eta_range=tuple(args.eta_range),
         envmap=Path(args.envmap) if args.envmap else None,
         env_rotation=args.env_rotation,
+        known_distance=args.known_distance,
+        images=Path(args.images) if args.images else None,
     )
+    print(json.dumps(info, indent=2))
+    return 0
+
+
+def _cmd_dataset_export_colmap(args) -> int:
+    from .colmap import export_colmap
+
+    info = export_colmap(Path(args.dataset), Path(args.out), text=args.text)
     print(json.dumps(info, indent=2))
     return 0
 
@@ -412,6 +426,22 @@ def _cmd_dataset_check(args) -> int:
         print(p)
     print(f"{args.dir}: {'OK' if not problems else f'{len(problems)} problem(s)'}")
     return 2 if problems else 0  # bad input, as everywhere
+
+
+def _cmd_dataset_register_env(args) -> int:
+    from .calibrate import calibrate
+    from .dataset import box_of
+
+    info = calibrate(
+        Path(args.dataset),
+        exposure=args.exposure,
+        write=args.write,
+        box=box_of(args.box) if args.box else None,
+        keep_rotation=args.keep_rotation,
+        poses=args.poses,
+    )
+    print(json.dumps(info, indent=2))
+    return 0
 
 
 def _config_names_field(path) -> bool:
@@ -791,7 +821,8 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         "--seed",
         type=int,
         default=0,
-        help="seed of the procedural environment (and of the shape, for `random` and `blobs`)",
+        help="seed of the procedural environment (and of the shape, for `random` and "
+        "`blobs`, and of --realistic's flaws)",
     )
     p.add_argument(
         "--eta", type=float, default=None, help="family shapes: glass index, 1.2 to 1.9 (1.5)"
@@ -811,20 +842,56 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
     )
     p.add_argument("--fov", type=float, default=30.0, help="vertical field of view, degrees")
     p.add_argument("--device", default=None, help="OpenCL device, as for render")
+    p.add_argument(
+        "--realistic",
+        action="store_true",
+        help="render a real capture's flaws, each a --flaws key (default): an OPENCV lens "
+        "(k1=-0.05, k2=0.01, p1=0.001, p2=0.001), recorded; poses recorded off by pose_deg=0.1 "
+        "degree and pose_mm=0.2 mm (frames from the true ones); Poisson-Gaussian sensor noise "
+        "(value = Poisson(v x full_well) / full_well + Normal(0, read_noise), v in units of full "
+        "scale; full_well=4000, read_noise=0.001); 8-bit sRGB JPEG frames (jpeg=90; 0: linear "
+        "EXR; chroma=420, 422 or 444 subsampling) at an exposure that clips clip=0.02 of the "
+        "panorama in the brightest view, recorded as exposure_scale; per-view exposure within "
+        "+-exposure_ev=0.3 EV and red and blue gains within 1 +- tint=0.03, and the panorama "
+        "turned by env_rotation=3/-2/4 degrees, none of these three recorded. The truth goes "
+        "to OUT/realistic.json",
+    )
+    p.add_argument(
+        "--flaws",
+        metavar="KEY=VALUE,...",
+        help="set these flaws of --realistic (with it: change them; without it: only these, "
+        "e.g. k1=-0.05,k2=0.01 for the lens alone)",
+    )
     p.set_defaults(func=_cmd_dataset_make)
     p = ds.add_parser(
-        "import", help="make a dataset folder from a NeRF-synthetic or instant-ngp capture"
+        "import",
+        help="make a dataset folder from a NeRF-synthetic, instant-ngp or COLMAP capture",
     )
-    p.add_argument("src", help="capture folder (or its transforms.json)")
+    p.add_argument(
+        "src",
+        help="capture folder (or its transforms.json); a COLMAP project holds its sparse model "
+        "in sparse/0, sparse or the folder itself",
+    )
     p.add_argument("--out", required=True, help="dataset folder to write")
     p.add_argument(
-        "--scale", type=float, default=1.0, help="millimetres per unit of the camera poses"
+        "--scale",
+        type=float,
+        default=None,
+        help="millimetres per unit of the camera poses (without it or --known-distance: 1)",
     )
+    p.add_argument(
+        "--known-distance",
+        nargs=3,
+        metavar=("I", "J", "MM"),
+        help="the scale instead: the images named I and J have their centres MM mm apart",
+    )
+    p.add_argument("--images", help="a COLMAP project's image folder (default: SRC/images)")
     # --pose-box: in the poses' units, where every other --box is in mm (old name: --box)
     _add_box_option(
         p,
         "the object's box in the poses' units (default: instant-ngp's box where "
-        "transforms.json sets aabb_scale, scale or offset, else the region the cameras look at)",
+        "transforms.json sets aabb_scale, scale or offset; a COLMAP model's sparse points in "
+        "the region the cameras look at; else that region)",
         ("--pose-box", "--box"),
     )
     p.add_argument(
@@ -849,10 +916,52 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         "(scene.json's envmap_rotation)",
     )
     p.set_defaults(func=_cmd_dataset_import)
+    p = ds.add_parser(
+        "export-colmap",
+        help="write a dataset folder as a COLMAP project (sparse/0, images/, envmap)",
+    )
+    p.add_argument("dataset", help="dataset folder")
+    p.add_argument("--out", required=True, help="COLMAP project folder to write")
+    p.add_argument("--text", action="store_true", help="write the model as .txt, not .bin")
+    p.set_defaults(func=_cmd_dataset_export_colmap)
     p = ds.add_parser("check", help="validate a dataset folder and name every problem")
     p.add_argument("dir")
     _add_box_option(p, "the object's box in mm, instead of scene.json's or the cameras'")
     p.set_defaults(func=_cmd_dataset_check)
+    p = ds.add_parser(
+        "register-env",
+        help="find the panorama's rotation (and each view's exposure, white balance and "
+        "camera rotation) from the pixels that see it straight",
+    )
+    p.add_argument("dataset", help="dataset folder")
+    p.add_argument(
+        "--exposure",
+        action="store_true",
+        help="also estimate each frame's exposure_scale and white_balance (RGB gains)",
+    )
+    p.add_argument(
+        "--keep-rotation",
+        action="store_true",
+        help="take scene.json's envmap_rotation as it is (with --exposure: only the gains)",
+    )
+    p.add_argument(
+        "--poses",
+        action="store_true",
+        help="also correct each camera's rotation (not its position) to the panorama: a pose "
+        "off by a tenth of a degree misplaces the object by half a pixel at 128 x 128",
+    )
+    p.add_argument(
+        "--write",
+        action="store_true",
+        help="write the rotation into scene.json (and with --exposure the gains, with --poses "
+        "the corrected poses, into the transforms files), keeping every other key",
+    )
+    _add_box_option(
+        p,
+        "the object's box in mm, instead of scene.json's or the cameras': only rays that miss "
+        "it are used, so a tight one gives more",
+    )
+    p.set_defaults(func=_cmd_dataset_register_env)
 
     p = sub.add_parser(
         "fit",

@@ -318,9 +318,9 @@ def image_path(root: Path, rel: str, suffix: str) -> Path:
 
 
 def read_frame_image(path: Path, cam: Camera):
-    """A frame's linear image (times its exposure), the loss weight of each pixel (0 where
-    the photograph clipped: its radiance is unknown), checked against its camera, and its
-    alpha (None without one)."""
+    """A frame's linear image (times its exposure and white balance), the loss weight of
+    each pixel (0 where the photograph clipped: its radiance is unknown), checked against its
+    camera, and its alpha (None without one)."""
     img, clipped, alpha = read_frame_rgba(path)
     if img.shape[:2] != (cam.height, cam.width):
         raise ClrefractError(
@@ -333,7 +333,12 @@ def read_frame_image(path: Path, cam: Camera):
     weight = np.ones(img.shape[:2], np.float32)
     if clipped is not None:
         weight[clipped] = 0.0
-    return img * np.float32(cam.exposure), weight, alpha
+    return img * frame_gain(cam), weight, alpha
+
+
+def frame_gain(cam: Camera) -> np.ndarray:
+    """(3,) what a frame's decoded values are multiplied by: its exposure and white balance."""
+    return np.float32(cam.exposure) * np.asarray(cam.white_balance, np.float32)
 
 
 def check_background(path: Path, img: np.ndarray, alpha: np.ndarray | None) -> None:
@@ -666,7 +671,7 @@ def _view_mask(path: Path | None, cam: Camera, img, alpha, env: EnvMap) -> np.nd
     if path is not None:
         return read_mask(path, cam)
     mask = alpha_mask(alpha)
-    return refraction_mask(cam, img, env) if mask is None else mask
+    return refraction_mask(cam, img * frame_gain(cam), env) if mask is None else mask
 
 
 def _describe_walls(box: Box, views: list, notes: list[str]) -> None:

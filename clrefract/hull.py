@@ -25,6 +25,18 @@ SOLIDITY = 0.5  # below this fraction of its convex hull, a mask is edge arcs
 TOLERANCE = 0.03  # fraction of the views a hull point may lie outside (masks' small holes)
 CARVE_MAX = 0.02  # share of the others' core a view may carve before its mask is left out
 CORE_TOLERANCE = 0.2  # the core the views agree on: inside all of them but a fifth
+# A real capture's background differs a little from the panorama everywhere (sensor noise,
+# JPEG, a pose off by a tenth of a degree): where NOISE_K times the lower quartile of the
+# pixels' differences passes the threshold, the two are compared blurred by NOISE_BLUR_PX,
+# against that raised threshold (at most NOISE_CAP: refraction differs by more, and an object
+# that fills the frame sets the quartile itself), and the thin lines that misregistration
+# leaves are opened away. On the realistic sphere (`dataset make --realistic`) this took the
+# masks from 95-99% of each view to an IoU of 0.94 with the clean dataset's; clean datasets
+# (a quartile of 0) are untouched.
+NOISE_K = 6.0
+NOISE_QUANTILE = 25
+NOISE_CAP = 0.15
+NOISE_BLUR_PX = 0.7
 
 
 @dataclass
@@ -78,10 +90,20 @@ def refraction_mask(
     _, d = cam.rays()
     straight = env.lookup(d).reshape(cam.height, cam.width, 3)
     diff = np.abs(srgb(image)[0] - srgb(straight)[0]).max(axis=-1)
+    noisy = NOISE_K * float(np.percentile(diff, NOISE_QUANTILE)) > threshold
+    if noisy:
+        blur = (NOISE_BLUR_PX, NOISE_BLUR_PX, 0)
+        smooth = [srgb(ndimage.gaussian_filter(x, blur))[0] for x in (image, straight)]
+        diff = np.abs(smooth[0] - smooth[1]).max(axis=-1)
+        noise = NOISE_K * float(np.percentile(diff, NOISE_QUANTILE))
+        threshold = max(threshold, min(noise, NOISE_CAP))
+    marked = ndimage.median_filter(diff, size=3) > threshold
+    if noisy:
+        marked = ndimage.binary_opening(marked)
     # closed with the frame's edge pixels carried on beyond it: closing erodes what touches
     # the border otherwise, and an object that runs off the frame would stop short of it
     pad = 2
-    marked = np.pad(ndimage.median_filter(diff, size=3) > threshold, pad, mode="edge")
+    marked = np.pad(marked, pad, mode="edge")
     mask = ndimage.binary_closing(marked, iterations=pad)[pad:-pad, pad:-pad]
     mask = ndimage.binary_fill_holes(mask)
     # a ray through two parallel faces leaves parallel to how it came, shifted: with the

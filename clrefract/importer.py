@@ -4,9 +4,12 @@
                                not used), frames ./train/r_0 meaning r_0.png
     instant-ngp / COLMAP:      SRC/transforms.json; every 8th frame becomes a test view, and
                                its aabb_scale, scale and offset give the box (ngp_box)
-Poses are multiplied by --scale into millimetres, frames and masks are copied beside the new
-transforms files, and scene.json records the box (--pose-box, else instant-ngp's, else the region
-the cameras look at), the index range and where the capture came from. Nothing in an existing
+    COLMAP sparse model:       SRC/sparse/0, SRC/sparse or SRC with cameras, images and
+                               points3D (.bin or .txt), images in SRC/images (colmap.py)
+Poses are multiplied by --scale (or the scale --known-distance gives) into millimetres, frames
+and masks are copied beside the new transforms files, and scene.json records the box
+(--pose-box, else instant-ngp's, else a COLMAP model's sparse points, else the region the
+cameras look at), the index range and where the capture came from. Nothing in an existing
 dataset is replaced.
 """
 
@@ -20,6 +23,14 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import IMAGE_SUFFIXES, Camera, load_transforms, save_transforms
+from .colmap import (
+    ColmapCapture,
+    box_from_points,
+    find_model,
+    model_file,
+    read_colmap,
+    split_by_name,
+)
 from .dataset import (
     DEFAULT_ETA_RANGE,
     DEFAULT_HOLDOUT,
@@ -60,8 +71,9 @@ def _layout(src: Path) -> tuple[str, list[Camera], list[Camera], Path | None]:
         raise ClrefractError(f"{src}: capture folder not found")
     else:
         raise ClrefractError(
-            f"{src}: no transforms_train.json or transforms.json here (a NeRF-synthetic or "
-            "instant-ngp capture)"
+            f"{src}: no transforms_train.json, transforms.json or COLMAP model here (a "
+            "NeRF-synthetic, instant-ngp or COLMAP capture: sparse/0, sparse or this folder "
+            "holding cameras.bin or cameras.txt)"
         )
     cams = load_transforms(src / single)
     if len(cams) < 2:
@@ -137,22 +149,87 @@ def ngp_box(keys: dict, cams: list[Camera], scale: float, where: str) -> tuple[B
     )
 
 
+def _colmap(src: Path, images: Path | None) -> ColmapCapture | None:
+    """The COLMAP project src, None where src is a transforms capture (those come first)."""
+    transforms = ("transforms_train.json", "transforms.json")
+    model = None
+    if src.is_dir() and not any((src / f).is_file() for f in transforms):
+        model = find_model(src)
+    if model is None:
+        if images is not None:
+            raise ClrefractError(f"{src}: --images is for a COLMAP project, and this is none")
+        return None
+    return read_colmap(src, model, images)
+
+
+def camera_named(cams: list[Camera], name: str, where: str) -> Camera:
+    """The camera of the image called `name`: the one so named, else the only one whose file
+    name (with or without its image type) is `name`'s."""
+
+    def key(n: str) -> str:
+        p = Path(n)
+        return p.stem if p.suffix.lower() in IMAGE_SUFFIXES else p.name
+
+    found = [c for c in cams if c.name == name] or [c for c in cams if key(c.name) == key(name)]
+    if len(found) != 1:
+        some = f"names {len(found)} images ({', '.join(c.name for c in found[:4])})"
+        raise ClrefractError(
+            f"{where}: --known-distance: {'no image is' if not found else some} named {name!r}"
+        )
+    return found[0]
+
+
+def known_distance_scale(cams: list[Camera], first: str, second: str, mm, where: str) -> float:
+    """Millimetres per unit of the poses that put the centres of the images named `first`
+    and `second` `mm` apart."""
+    try:
+        mm = float(mm)
+    except ValueError:
+        raise ClrefractError(f"--known-distance: {mm!r} is not a number of mm") from None
+    if not (mm > 0 and np.isfinite(mm)):
+        raise ClrefractError(f"--known-distance: the distance must be positive mm, got {mm:g}")
+    a, b = camera_named(cams, first, where), camera_named(cams, second, where)
+    if a is b:
+        raise ClrefractError(f"--known-distance: {first!r} and {second!r} name one image")
+    units = float(np.linalg.norm(a.position - b.position))
+    if not units > 0:
+        raise ClrefractError(f"{where}: images {first!r} and {second!r} have the same centre")
+    return mm / units
+
+
 def import_capture(
     src: Path,
     out: Path,
-    scale: float = 1.0,
+    scale: float | None = None,
     box: list[float] | None = None,
     eta_range: tuple[float, float] = DEFAULT_ETA_RANGE,
     envmap: Path | None = None,
     env_rotation: list[float] | None = None,
+    known_distance: tuple[str, str, float] | None = None,
+    images: Path | None = None,
 ) -> dict:
-    """Write a dataset folder `out` from a capture `src`; returns what was done."""
+    """Write a dataset folder `out` from a capture `src`; returns what was done. The scale is
+    `scale` mm per unit, or the one `known_distance` (image, image, mm) gives, else 1; `images`
+    is a COLMAP project's image folder (default src/images)."""
     src, out = Path(src), Path(out)
-    if not (scale > 0 and np.isfinite(scale)):
+    if scale is not None and known_distance is not None:
+        raise ClrefractError("give --scale or --known-distance, not both")
+    if scale is not None and not (scale > 0 and np.isfinite(scale)):
         raise ClrefractError(f"--scale must be a positive number (mm per unit), got {scale}")
     if not 1.0 <= eta_range[0] < eta_range[1]:
         raise ClrefractError(f"--eta-range must be lo hi with 1 <= lo < hi, got {eta_range}")
-    layout, train, test, single = _layout(src)
+    capture = _colmap(src, images)
+    if capture is not None:
+        train, test, split_rule = split_by_name(capture.cameras, DEFAULT_HOLDOUT)
+        layout, single, where = "colmap", None, str(model_file(capture.model, "images"))
+    else:
+        layout, train, test, single = _layout(src)
+        split_rule, where = None, str(single or src)
+    scale_from = "--scale" if scale is not None else "the default (1 mm per unit)"
+    if known_distance is not None:
+        scale = known_distance_scale(train + test, *known_distance, where)
+        scale_from = "--known-distance {} {} {} mm".format(*known_distance)
+    scale = 1.0 if scale is None else scale
     root = src if src.is_dir() else src.parent
     clash = [name for name in WRITES if (out / name).exists()]
     if clash:
@@ -179,6 +256,9 @@ def import_capture(
         the_box, box_source = box_of(box, scale, "--pose-box"), "--pose-box"
     elif ngp is not None:
         the_box, box_source = ngp_box(ngp, everyone, scale, str(single))
+    elif capture is not None:
+        points = str(model_file(capture.model, "points3D"))
+        the_box, box_source = box_from_points(capture.points * scale, everyone, points)
     else:
         the_box, box_source = box_from_cameras(everyone, str(src)), "the cameras"
     ensure_out_dir(out, "dataset folder")
@@ -186,7 +266,11 @@ def import_capture(
     for split in cams.values():
         for k, cam in enumerate(split):
             folder_mask = None if cam.mask_path else mask_file(root, cam, k)
-            cam.file_path = _copy_file(root, cam.file_path, out, hint)
+            if capture is not None:  # images/<name> in both, the name as the model gives it
+                (out / cam.file_path).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(capture.sources[cam.file_path], out / cam.file_path)
+            else:
+                cam.file_path = _copy_file(root, cam.file_path, out, hint)
             if cam.mask_path:
                 cam.mask_path = _copy_file(root, cam.mask_path, out, ".png")
             elif folder_mask is not None:  # masks/<frame>: the same name beside the copy
@@ -206,7 +290,9 @@ def import_capture(
                 "source": str(src.resolve()),
                 "layout": layout,
                 "scale": scale,
+                "scale_from": scale_from,
                 "box_from": box_source,
+                **({"model": str(capture.model.resolve()), "split": split_rule} if capture else {}),
             }
         },
     )
@@ -219,4 +305,6 @@ def import_capture(
         "box": the_box.to_dict(),
         "box_from": box_source,
         "scale": scale,
+        "scale_from": scale_from,
+        **({"split": split_rule} if split_rule else {}),
     }

@@ -27,7 +27,7 @@ import numpy as np
 
 from .cameras import fibonacci_sphere_cameras, save_transforms
 from .dataset import Scene, write_scene
-from .envmap import EnvMap
+from .envmap import EnvMap, rotation_matrix
 from .errors import ClrefractError
 from .family import FAMILY, make_shape
 from .fields.analytic import Blobs, Drop, GrinLens, GrinRod, Luneburg, Plume, Prism, Sphere
@@ -35,6 +35,7 @@ from .fields.base import Box
 from .imageio import write_exr_rgb, write_png_srgb
 from .log import Progress
 from .mesh import write_mesh
+from .realistic import Flaws, RealisticCapture
 
 SOLIDS = ("sphere", "prism", "drop")
 GRADED = ("luneburg", "blobs", "grin-rod", "grin-lens", "plume")
@@ -89,6 +90,9 @@ class MakeOptions:
     volume_res: int = 128
     eta: float | None = None  # family shapes: index of the glass (default 1.5)
     tilt: tuple[float, float, float] | None = None  # family shapes: rotation, degrees
+    # the panorama turned in the world (scene.json's envmap_rotation): tests of its registration
+    env_rotation: list | None = None
+    realistic: Flaws | None = None  # render a real capture's flaws (clrefract.realistic)
 
 
 def _ray_renderer(name: str, obj, box: Box, runtime):
@@ -151,6 +155,8 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) 
         )
     if not 1.0 <= opt.fov_y <= 170.0:
         raise ClrefractError(f"--fov must be 1 to 170 degrees, got {opt.fov_y:g}")
+    if opt.realistic is not None and opt.res >= 4:
+        opt.realistic.check(fibonacci_sphere_cameras(1, opt.radius, opt.res, opt.res, opt.fov_y)[0])
     out = Path(out)
     (out / "train").mkdir(parents=True, exist_ok=True)
     (out / "test").mkdir(parents=True, exist_ok=True)
@@ -163,11 +169,16 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) 
     )
     env.save(out / "envmap.exr")
     write_png_srgb(out / "envmap.png", env.image)
+    if opt.env_rotation is not None:
+        env = EnvMap(env.image, rotation_matrix(opt.env_rotation))
+    capture = None if opt.realistic is None else RealisticCapture(opt.realistic, env, opt.seed)
     runtime = Runtime(opt.device)
     trace = _ray_renderer(name if name in SCENES else "graded", obj, box, runtime)
     cams = fibonacci_sphere_cameras(
         opt.views, radius=opt.radius, width=opt.res, height=opt.res, fov_y_deg=opt.fov_y
     )
+    if capture is not None:  # rays leave through its lens, from the true poses
+        cams, env = [capture.lens(c) for c in cams], capture.env
     train, test = [], []
     bar = Progress(opt.views, f"dataset {name}", unit="views", stream=stream)
     bad_total = 0
@@ -181,12 +192,17 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) 
         img[~ok] = 0.0  # rays trapped by total internal reflection carry no light here
         bad_total += int((~ok).sum())
         img = img.reshape(cam.height, cam.width, 3)
-        write_exr_rgb(out / split / f"r_{k:03d}.exr", img)
-        write_png_srgb(out / split / f"r_{k:03d}.png", img)
+        if capture is None:
+            write_exr_rgb(out / split / f"r_{k:03d}.exr", img)
+            write_png_srgb(out / split / f"r_{k:03d}.png", img)
+        else:  # the camera its transforms file records
+            cam = capture.shoot(k, cam, img, out / split / f"r_{k:03d}", split)
         (test if split == "test" else train).append(cam)
         bar.update(1)
     save_transforms(out / "transforms_train.json", train)
     save_transforms(out / "transforms_test.json", test)
+    if capture is not None:
+        capture.save(out)
     t_views = time.perf_counter() - t_start
     VoxelGrid.from_field(obj, box, opt.volume_res, "trilinear").save(out / "gt_eta.npz")
     verts, faces = surface_mesh(obj)
@@ -196,6 +212,7 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) 
         box=box,
         eta_range=(1.0, eta_hi),
         object=obj.to_dict(),
+        envmap_rotation=None if opt.env_rotation is None else list(opt.env_rotation),
         ground_truth={
             "eta_volume": "gt_eta.npz",
             "surface": "gt_surface.ply",
@@ -220,4 +237,5 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) 
         "seconds_views": t_views,
         "seconds_total": time.perf_counter() - t_start,
         "untraced_pixels": bad_total,
+        **({"realistic": capture.summary()} if capture is not None else {}),
     }

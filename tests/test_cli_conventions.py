@@ -58,7 +58,11 @@ def test_one_meaning_per_flag_name():
     assert seen["--res"] == {"clrefract render", "clrefract dataset make"}
     assert seen["--field"] == {"clrefract render"}
     assert seen["--grid-res"] == seen["--field-kind"] == {"clrefract fit"}
-    assert seen["--box"] == {"clrefract fit", "clrefract dataset check"}
+    assert seen["--box"] == {
+        "clrefract fit",
+        "clrefract dataset check",
+        "clrefract dataset register-env",
+    }
     assert seen["--pose-box"] == {"clrefract dataset import"}
 
 

@@ -1,0 +1,179 @@
+"""`clrefract dataset register-env`: the panorama's rotation and each view's exposure and
+white balance, recovered from the background pixels of scripted scenes rendered with a known
+rotation and scaled by known gains."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from clrefract.calibrate import background_views, calibrate, rotation_angle, split_gain
+from clrefract.cameras import load_transforms, save_transforms
+from clrefract.cli import main
+from clrefract.dataset import Dataset, box_of, read_frame_image
+from clrefract.errors import ClrefractError
+from clrefract.imageio import read_exr_rgb, write_exr_rgb
+from clrefract.synth import MakeOptions, make_dataset
+
+TURN = [5.0, -5.0, 5.0]  # degrees about x, y, z
+BOX = "-22,-22,-22,22,22,22"  # holds the sphere (radius 20 mm), leaves the views' rims free
+
+
+@pytest.fixture(scope="module")
+def rotated(tmp_path_factory):
+    """The sphere rendered with the panorama turned by TURN (the key then deleted), each
+    frame divided by a known RGB gain: (folder, {file_path: gain})."""
+    root = tmp_path_factory.mktemp("calibrate") / "turned"
+    opt = MakeOptions(views=12, res=48, env_width=512, volume_res=16, env_rotation=TURN)
+    make_dataset("sphere", root, opt)
+    scene = json.loads((root / "scene.json").read_text())
+    assert scene.pop("envmap_rotation") == TURN
+    (root / "scene.json").write_text(json.dumps(scene))
+    rng = np.random.default_rng(3)
+    gains = {}
+    for name in ("transforms_train.json", "transforms_test.json"):
+        for cam in load_transforms(root / name):
+            g = 2.0 ** rng.uniform(-0.3, 0.3) * rng.uniform(0.96, 1.04, 3)  # +-0.3 EV, tint
+            path = root / f"{cam.file_path}.exr"
+            write_exr_rgb(path, read_exr_rgb(path) / g)
+            gains[cam.file_path] = g
+    return root, gains
+
+
+def test_rotation_and_gains_recovered_and_written(rotated, tmp_path, capsys):
+    root = tmp_path / "d"
+    shutil.copytree(rotated[0], root)
+    before = json.loads((root / "scene.json").read_text())
+    poses = json.loads((root / "transforms_train.json").read_text())
+    rc = main(["-q", "dataset", "register-env", str(root), "--box", BOX, "--exposure", "--write"])
+    assert rc == 0
+    info = json.loads(capsys.readouterr().out)
+    scene = json.loads((root / "scene.json").read_text())
+    assert np.abs(np.subtract(scene["envmap_rotation"], TURN)).max() < 0.2
+    assert rotation_angle(scene["envmap_rotation"], TURN) < 0.2
+    assert info["residual_log_rms"] < 0.01 < info["residual_log_rms_before"]
+    assert {k: v for k, v in scene.items() if k != "envmap_rotation"} == before
+    cams = load_transforms(root / "transforms_train.json") + load_transforms(
+        root / "transforms_test.json"
+    )
+    assert len(cams) == 12
+    for cam in cams:
+        found = cam.exposure * np.array(cam.white_balance)
+        assert np.abs(found / rotated[1][cam.file_path] - 1).max() < 0.01, cam.file_path
+        assert abs(np.prod(cam.white_balance) - 1) < 1e-4  # the tint alone, exposure apart
+    after = json.loads((root / "transforms_train.json").read_text())
+    for a, b in zip(after["frames"], poses["frames"], strict=True):
+        assert a["transform_matrix"] == b["transform_matrix"]
+    # read back as a fit reads them, the background pixels now match the rotated panorama
+    ds = Dataset(root)
+    env = ds.envmap()
+    for v in background_views(ds, box_of(BOX))[:3]:
+        assert np.abs(v.rgb / env.lookup(v.dirs) - 1).max() < 0.01
+    # again from what was written, the rotation kept: nothing left to correct
+    again = calibrate(root, exposure=True, box=box_of(BOX), keep_rotation=True)
+    assert again["envmap_rotation"] == scene["envmap_rotation"]
+    assert again["residual_log_rms"] == pytest.approx(info["residual_log_rms"], abs=1e-4)
+    for f, cam in zip(again["frames"], cams, strict=True):
+        assert f["exposure_scale"] == pytest.approx(cam.exposure, rel=1e-4)
+        assert np.allclose(f["white_balance"], cam.white_balance, rtol=1e-4)
+
+
+def test_default_box_uses_every_pixel_and_trims_the_object(rotated):
+    # the default box (100 mm) fills every view: the object's refracted pixels are trimmed
+    info = calibrate(rotated[0], exposure=True)
+    assert info["pixels"].startswith("every pixel")
+    assert rotation_angle(info["envmap_rotation"], TURN) < 0.2
+    for f in info["frames"]:
+        found = f["exposure_scale"] * np.array(f["white_balance"])
+        assert np.abs(found / rotated[1][f["file_path"]] - 1).max() < 0.01, f["frame"]
+
+
+def test_unrotated_panorama_gives_identity(sphere_25x48):
+    # sphere_25x48 is read-only: without --write nothing may be written (the fixture checks)
+    info = calibrate(sphere_25x48, exposure=True, box=box_of(BOX))
+    assert np.abs(info["envmap_rotation"]).max() < 0.02
+    assert info["residual_log_rms"] < 1e-3
+    for f in info["frames"]:
+        gain = f["exposure_scale"] * np.array(f["white_balance"])
+        assert np.abs(gain - 1).max() < 1e-3, f["frame"]
+    assert info["written"] == []
+
+
+def test_white_balance_multiplies_after_exposure(sphere_8x24, tmp_path):
+    cams = load_transforms(sphere_8x24 / "transforms_train.json")
+    cams[0].exposure, cams[0].white_balance = 2.0, (1.1, 1.0, 0.9)
+    save_transforms(tmp_path / "t.json", cams)
+    back = load_transforms(tmp_path / "t.json")
+    assert back[0].white_balance == (1.1, 1.0, 0.9) and back[0].exposure == 2.0
+    assert back[1].white_balance == (1.0, 1.0, 1.0)
+    path = sphere_8x24 / f"{cams[0].file_path}.exr"
+    img, _, _ = read_frame_image(path, back[0])
+    assert np.allclose(img, read_exr_rgb(path) * 2.0 * np.array([1.1, 1.0, 0.9]), rtol=1e-6)
+    assert split_gain([2.2, 2.0, 1.8])[0] == pytest.approx((2.2 * 2.0 * 1.8) ** (1 / 3))
+
+
+def test_top_level_white_balance_and_bad_values(sphere_8x24, tmp_path):
+    top = json.loads((sphere_8x24 / "transforms_train.json").read_text())
+    top["white_balance"] = [1.2, 1.0, 0.8]
+    top["frames"][1]["white_balance"] = [1.0, 1.0, 1.05]
+    (tmp_path / "t.json").write_text(json.dumps(top))
+    cams = load_transforms(tmp_path / "t.json")
+    assert cams[0].white_balance == (1.2, 1.0, 0.8)
+    assert cams[1].white_balance == (1.0, 1.0, 1.05)
+    for bad in ([1.0, 0.0, 1.0], [1.0, 1.0], "white", [1.0, True, 1.0]):
+        top["frames"][1]["white_balance"] = bad
+        (tmp_path / "t.json").write_text(json.dumps(top))
+        with pytest.raises(ClrefractError, match=r"t\.json: frames\[1\]: 'white_balance'"):
+            load_transforms(tmp_path / "t.json")
+
+
+def _refused(capsys, argv, *words):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err
+    for w in words:
+        assert w in err, err
+
+
+def test_bad_input_refused_in_one_line(sphere_8x24, tmp_path, capsys):
+    root = tmp_path / "d"
+    shutil.copytree(sphere_8x24, root)
+    scene = root / "scene.json"
+    text = scene.read_text()
+    # a box that fills every view: no ray reaches the panorama past it
+    argv = ["-q", "dataset", "register-env", str(root), "--box", "-50,-50,-50,50,50,50"]
+    argv += ["--exposure", "--write"]
+    _refused(capsys, argv, str(scene), "no background pixels", "--box")
+    assert scene.read_text() == text
+    frames = (root / "transforms_train.json").read_text()
+    scene.write_text("{not json")
+    _refused(capsys, argv, str(scene), "cannot read")
+    assert (root / "transforms_train.json").read_text() == frames
+
+
+def test_poses_turned_back_onto_the_panorama(sphere_25x48, tmp_path):
+    # each recorded camera turned by 0.3 degrees (half a pixel at 48 x 48) about a random
+    # axis; its background pixels turn it back, its position stays
+    from clrefract.calibrate import rotvec_matrix
+
+    root = tmp_path / "d"
+    shutil.copytree(sphere_25x48, root)
+    rng = np.random.default_rng(5)
+    path = root / "transforms_train.json"
+    d = json.loads(path.read_text())
+    true = [np.array(f["transform_matrix"]) for f in d["frames"]]
+    for f in d["frames"]:
+        axis = rng.normal(size=3)
+        turn = rotvec_matrix(np.radians(0.3) * axis / np.linalg.norm(axis))
+        c2w = np.array(f["transform_matrix"])
+        c2w[:3, :3] = turn @ c2w[:3, :3]
+        f["transform_matrix"] = c2w.tolist()
+    path.write_text(json.dumps(d))
+    info = calibrate(root, box=box_of(BOX), keep_rotation=True, poses=True, write=True)
+    assert all(abs(t - 0.3) < 0.05 for t in info["view_turns_deg"][: len(true)])
+    for cam, t in zip(load_transforms(path), true, strict=True):
+        assert rotation_angle(np.eye(3), cam.c2w[:3, :3] @ t[:3, :3].T) < 0.03
+        assert np.allclose(cam.c2w[:3, 3], t[:3, 3])
