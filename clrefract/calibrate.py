@@ -95,7 +95,7 @@ def inliers(env: EnvMap, views: list[View], angles) -> list[View]:
     m = rotation_matrix(np.asarray(angles, float))
     out = []
     for v in views:
-        r = np.log(v.rgb) - np.log(np.maximum(env.lookup(v.dirs @ m), floor))
+        r = np.log(v.rgb) - log_lookup(env, v.dirs @ m, floor)
         r -= np.median(r, axis=0)
         keep = np.abs(r).max(axis=1) < TRIM_LOG
         out.append(View(v.source, v.index, v.camera, v.dirs[keep], v.rgb[keep]))
@@ -109,6 +109,11 @@ def no_background_error(ds: Dataset, box: Box) -> ClrefractError:
         f"{list(box.lo)}..{list(box.hi)} mm, so no pixel sees the panorama straight "
         "(give a smaller --box that still holds the object)"
     )
+
+
+def log_lookup(env: EnvMap, dirs: np.ndarray, floor: float) -> np.ndarray:
+    """Log radiance of the panorama along world directions (n, 3), clamped at `floor`."""
+    return np.log(np.maximum(env.lookup(dirs), floor))
 
 
 def _floor(env: EnvMap) -> float:
@@ -133,8 +138,8 @@ class _Samples:
     def residuals(self, env: EnvMap, angles, floor: float) -> np.ndarray:
         """Log residuals (V, n, 3) with each view's RGB gain (median log ratio) taken out."""
         m = rotation_matrix(np.asarray(angles, float))
-        e = env.lookup(self.dirs.reshape(-1, 3) @ m).reshape(self.logs.shape)
-        r = self.logs - np.log(np.maximum(e, floor))
+        e = log_lookup(env, self.dirs.reshape(-1, 3) @ m, floor).reshape(self.logs.shape)
+        r = self.logs - e
         return r - np.median(r, axis=1, keepdims=True)
 
     def loss(self, env: EnvMap, angles, floor: float) -> float:
@@ -279,7 +284,7 @@ def refine_view_rotations(env: EnvMap, views: list[View], angles, seed: int = 0)
         d, logs = v.dirs[pick], np.log(v.rgb[pick])
 
         def residual(w, e, d=d, logs=logs):
-            r = logs - np.log(np.maximum(e.lookup(d @ rotvec_matrix(w).T @ m), floor))
+            r = logs - log_lookup(e, d @ rotvec_matrix(w).T @ m, floor)
             return (r - np.median(r, axis=0)).ravel()
 
         w = np.zeros(3)
@@ -302,7 +307,7 @@ def estimate_gains(env: EnvMap, angles, views: list[View]) -> list[np.ndarray | 
         if len(v.dirs) < MIN_VIEW_PIXELS:
             out.append(None)
             continue
-        r = np.log(np.maximum(env.lookup(v.dirs @ m), floor)) - np.log(v.rgb)
+        r = log_lookup(env, v.dirs @ m, floor) - np.log(v.rgb)
         out.append(np.exp([_location(r[:, c]) for c in range(3)]))
     return out
 

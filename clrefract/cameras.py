@@ -194,6 +194,14 @@ def _border(cam: Camera) -> tuple:
 _LENS_CHECKS: dict = {}
 
 
+def lens_folds(cam: Camera) -> str | None:
+    """Why the camera's lens distortion folds its image (not one to one), or None."""
+    if not cam.distortion:
+        return None
+    ok, reason, _ = _check_lens(cam.camera_model, cam.distortion, _border(cam))
+    return None if ok else reason
+
+
 def _check_lens(model: str, dist: dict, border) -> tuple:
     """(ok, reason, r_max): whether the lens maps the image one to one, checked on its
     border (the undistortion converges there) and radially (the distorted radius grows with
@@ -464,12 +472,11 @@ def _frame_camera(path: Path, top: dict, frame, k: int) -> Camera:
         camera_model=model,
         distortion=dist,
     )
-    if dist:
-        ok, reason, _ = _check_lens(model, dist, _border(cam))
-        if not ok:
-            raise ClrefractError(
-                f"{path}: {where}lens distortion of camera_model {model} folds the image ({reason})"
-            )
+    reason = lens_folds(cam)
+    if reason is not None:
+        raise ClrefractError(
+            f"{path}: {where}lens distortion of camera_model {model} folds the image ({reason})"
+        )
     return cam
 
 

@@ -11,13 +11,12 @@ carry over as they are.
 from __future__ import annotations
 
 import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .cameras import IMAGE_SUFFIXES, Camera, load_transforms, save_transforms
+from .cameras import IMAGE_SUFFIXES, Camera, lens_folds
 from .dataset import DEFAULT_MARGIN, Dataset, box_from_cameras, default_margin, holdout_split
 from .errors import ClrefractError
 from .fields.base import Box
@@ -179,16 +178,13 @@ def read_colmap(src: Path, model: Path, images: Path | None = None) -> ColmapCap
 
 def check_lens(cam: Camera, where: str) -> None:
     """Refuse a lens that folds the image, as load_transforms refuses one in a transforms
-    file (the check is its own: a camera written there and read back)."""
-    if not cam.distortion:
-        return
-    with tempfile.TemporaryDirectory(prefix="clrefract-lens.") as tmp:
-        path = Path(tmp) / "lens.json"
-        save_transforms(path, [cam])
-        try:
-            load_transforms(path)
-        except ClrefractError as exc:  # 'PATH: frames[0]: lens distortion ...'
-            raise ClrefractError(f"{where}: {str(exc).split(': ', 2)[-1]}") from None
+    file."""
+    reason = lens_folds(cam)
+    if reason is not None:
+        raise ClrefractError(
+            f"{where}: lens distortion of camera_model {cam.camera_model} folds the image "
+            f"({reason})"
+        )
 
 
 def split_by_name(cams: list[Camera], every: int) -> tuple[list[Camera], list[Camera], str]:

@@ -13,7 +13,7 @@ from clrefract.cameras import Camera, load_transforms, look_at, save_transforms
 from clrefract.cli import main
 from clrefract.hull import project
 
-cv2 = pytest.importorskip("cv2")
+cv2 = pytest.importorskip("cv2", reason="OpenCV, the oracle, is the test extra's")
 
 LENSES = {
     "OPENCV": dict(k1=-0.2, k2=0.05, p1=1e-3, p2=-5e-4),

@@ -16,7 +16,7 @@ from clrefract.errors import ClrefractError
 from clrefract.imageio import read_hdr_rgb
 from clrefract.loss import envmap_lookup_jacobian
 
-cv2 = pytest.importorskip("cv2")
+cv2 = pytest.importorskip("cv2", reason="OpenCV, the oracle, is the test extra's")
 
 
 def _write_hdr(path, rgb, rle=True):
