@@ -225,9 +225,10 @@ def test_an_interface_field_file_round_trips_and_renders_the_same(tmp_path):
 
 def test_a_small_interface_fit_climbs_from_its_hull_start(sphere_12x24, tmp_path):
     """The 24 x 24 glass sphere (9 training views): the interface's hull start, then 300
-    steps of smoothed descent of at most 0.05 mm. The held-out views keep a later step than
-    the start, and the test view gains at least 0.5 dB over the start (measured +0.97,
-    27.48 -> 28.45 dB, the index from 1.396 towards 1.5)."""
+    steps of smoothed descent at the kind's own rates, judged at its last step (one held-out
+    view of 576 pixels is too few to pick a step by). The test views gain at least 0.6 dB
+    over the start (measured +1.22 to +1.31 dB over seeds 0 to 3, 27.48 -> 28.7 dB, the
+    index from 1.396 towards 1.5)."""
     import io
     import json
 
@@ -236,16 +237,34 @@ def test_a_small_interface_fit_climbs_from_its_hull_start(sphere_12x24, tmp_path
     cfg = load_config(
         None,
         dict(field="interface", tighten_hull=False, shell_starts=False, iterations=300,
-             validate_every=25, lr_phi=0.05),
+             validate_every=0, seed=1),
     )  # fmt: skip
-    assert cfg.optimizer == "descent" and cfg.descent_sigma == 4.0
+    assert cfg.optimizer == "descent" and cfg.descent_sigma == 4.0 and cfg.lr_phi == 0.02
     run = tmp_path / "run"
     fit = prepare_fit(sphere_12x24, run, cfg, stream=io.StringIO())
     result = fit.run()
-    assert result["best_iteration"] > 0
-    assert result["test_psnr"] > result["start"]["test_psnr"] + 0.5, result
+    assert result["test_psnr"] > result["start"]["test_psnr"] + 0.6, result
     assert abs(fit.field.eta - 1.5) < abs(json.loads((run / "init.json").read_text())["eta"] - 1.5)
     assert (run / "surface.ply").is_file() and result["chamfer_mm"] < 1.5
+
+
+def test_the_held_out_loss_of_a_small_held_out_set_takes_every_ray_once(sphere_12x24):
+    """Where the held-out views' rays fit in a batch, the held-out loss is theirs, each once:
+    the same for every seed (a sample drawn with replacement moved the 24 x 24 sphere's start
+    by 14% between seeds, more than a fit's gain)."""
+    from clrefract.dataset import Dataset
+    from clrefract.fit import load_config
+    from clrefract.fit.objective import Objective
+    from clrefract.fit.rays import TrainingRays
+
+    picks = []
+    for seed in (0, 1):
+        cfg = load_config(None, dict(field="interface", seed=seed))
+        rays = TrainingRays(Dataset(sphere_12x24), cfg)
+        idx = Objective(rays, cfg.loss, cfg.batch, seed).held_out_idx()
+        assert len(rays.held) == 576 and np.array_equal(np.sort(idx), np.sort(rays.held))
+        picks.append(idx)
+    assert np.array_equal(picks[0], picks[1])
 
 
 def test_the_command_line_picks_the_model_the_held_out_views_prefer(sphere_8x24, tmp_path):
