@@ -311,11 +311,11 @@ inline realv solid_sdf(FIELD_PARAMS, realv x, realv y, realv z, realv *nx, realv
     realv er0 = fmax(rho - RV(fp[3] * (REAL)0.649519052838329), RV(0));
     realv ez0 = fmax(fabs(pz) - RV(H), RV(0));
     realv bound = sqrt(er0 * er0 + ez0 * ez0);
-    maskv far = bound > RV(SOLID_W);
+    maskv far = bound > RV(SOLID_W), near = bound <= RV(SOLID_W);
     *nx = RV(0);
     *ny = RV(0);
     *nz = RV(0);
-    if (!ANY(!far))
+    if (!ANY(near))
         return bound;
     realv c = RV(1), s = RV(0), kb = RV(0), best_d2 = RV(INFINITY);
     for (int k = 0; k <= DROP_SAMPLES; ++k) {
@@ -329,7 +329,7 @@ inline realv solid_sdf(FIELD_PARAMS, realv x, realv y, realv z, realv *nx, realv
         kb = SEL(kb, RV((REAL)k), m);
     }
     realv u = RV(0), lo = RV(0), hi = RV(0);
-    maskv open = !far;
+    maskv open = near;
     for (int it = 0; it < DROP_NEWTON; ++it) {
         realv c2t = c * c - s * s;
         realv r = hR * s * (RV(1) - c), zc = H * c;
