@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -117,6 +118,8 @@ class TraceSettings:
         the Luneburg surface, a solid's band edges; a level set's band edges) so that they
         land on it and the scheme keeps its order there; False integrates across it (first
         order at the kink). Off with adjoint (fits): the backward passes take fixed steps.
+    compensated: sum each step into x and v compensated (Kahan) or plainly; None: where
+        rounding calls for it (compensated_sums: every float32 trace, no float64 one).
     queues, checkpoint_every, growth_max: the GradientEngine's (a Tracer ignores them):
         command queues to spread the rays over; forward states kept every so many steps
         for the backward pass (0: none, constant memory; the discrete adjoint's default
@@ -134,12 +137,30 @@ class TraceSettings:
     tol: float | None = None
     skip_empty: bool = False
     occupancy_res: int = 32
+    compensated: bool | None = None
     queues: int = 1
     checkpoint_every: int = 0
     growth_max: float = 0.0
 
 
 ADJOINT_KINDS = (None, "", "continuous", "discrete")  # TraceSettings.adjoint's values
+
+# float32's and float64's unit roundoff, and the rounding a plain sum may add to a ray
+UNIT_ROUNDOFF = {"float32": 2.0**-24, "float64": 2.0**-53}
+ROUNDING_BUDGET = 2.0**-22
+
+
+def compensated_sums(precision: str, max_steps: int, extent: float, step: float) -> bool:
+    """Whether the tracer sums x += dx and v += dv compensated (Kahan). A plain sum of x
+    rounds each step by up to u |x| (u the unit roundoff), u |x| / step of the step, and
+    one of v drifts as a random walk, about u sqrt(N) of |v| over N steps: compensated
+    where u (sqrt(max_steps) + extent / step) passes 2^-22 (2.4e-7, the float32 exit
+    direction's floor on the Luneburg lens with compensated sums), `extent` the largest
+    |coordinate| the kernels see. So float32 always (plain sums took the trade study's
+    Luneburg float32 error at 0.25 mm from 3.6e-7 to 1.9e-6); float64 only where
+    sqrt(max_steps) or extent / step passes 2^31, which no box and step allowed reach."""
+    u = UNIT_ROUNDOFF[precision]
+    return u * (math.sqrt(max_steps) + extent / step) > ROUNDING_BUDGET
 
 
 class Tracer:
@@ -197,6 +218,14 @@ class Tracer:
         kbox = Box(tuple(box.lo - self.offset), tuple(box.hi - self.offset), box.margin)
         defines = {**field.defines(), **kbox.defines(), "LANES": self.lanes}
         defines[f"INTEGRATOR_{integrator.upper()}"] = 1
+        # Kahan sums where rounding may pass 2^-22: u (sqrt(cap) + max|x| / step) > 2^-22
+        finest = float(step) * (1e-4 if tol is not None else 1.0)  # dopri5's floor: 1e-4 step
+        extent = float(np.abs(np.concatenate([kbox.lo, kbox.hi])).max())
+        self.compensated = settings.compensated
+        if self.compensated is None:
+            self.compensated = compensated_sums(precision, self.max_steps, extent, finest)
+        if self.compensated:
+            defines["TRACE_COMPENSATED"] = 1
         self.tol = None if tol is None else float(tol)
         if self.tol is not None:
             if integrator != "dopri5":
@@ -215,8 +244,10 @@ class Tracer:
                 # every step shrinks to the floor (measured: 60x the evaluations at 1e-10)
                 raise ClrefractError(f"tol {tol:g} is below float32's rounding; use float64")
             defines["ADAPTIVE_TOL"] = repr(self.tol)
-        # fits keep them off: the adjoints do not differentiate step lengths
-        self.interface_steps = bool(interface_steps) and not adjoint
+        # fits keep them off: the adjoints do not differentiate step lengths; a field that
+        # declares itself smooth (no kinks) builds without them
+        smooth = getattr(field, "smooth", False)
+        self.interface_steps = bool(interface_steps) and not adjoint and not smooth
         if not self.interface_steps:
             defines["NO_INTERFACE_STEPS"] = 1
         self.skip_empty = bool(skip_empty)

@@ -92,19 +92,50 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
 }
 
 #elif defined(FIELD_BLOBS)
-/* fp: NBLOBS x (cx cy cz amplitude sigma).  eta = 1 + sum a exp(-|x - c|^2 / 2 s^2). */
-inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, realv *gy,
-                        realv *gz) {
+/* 2^q for q <= 0 (the blobs' exponents): q = n + f, |f| <= 1/2, 2^f by Cephes' exp2f
+ * polynomial (relative error about 1e-7), n added to the exponent bits, rint by adding
+ * 1.5 2^23; q clamped at -125, where a term is below float32's resolution of eta. PoCL's exp
+ * and rint took about twice the instructions (their range checks), and the blobs spend most
+ * of a step in them. */
+#ifdef REAL_IS_DOUBLE
+#define blob_exp2 exp2
+#else
+inline __attribute__((always_inline)) realv blob_exp2(realv q) {
+    q = fmax(q, RV(-125.0f));
+    realv t = q + RV(12582912.0f);
+    realv f = q - (t - RV(12582912.0f));
+    realv p = RV(1.535336188319500e-4f) * f + RV(1.339887440266574e-3f);
+    p = p * f + RV(9.618437357674640e-3f);
+    p = p * f + RV(5.550332471162809e-2f);
+    p = p * f + RV(2.402264791363012e-1f);
+    p = p * f + RV(6.931472028550421e-1f);
+    realv y = p * f + RV(1.0f);
+#if LANES == 1
+    return as_float(as_int(y) + ((as_int(t) - 0x4B400000) << 23));
+#else
+    return CAT(as_float, LANES)(CAT(as_int, LANES)(y) +
+                                ((CAT(as_int, LANES)(t) - 0x4B400000) << 23));
+#endif
+}
+#endif
+
+/* fp: NBLOBS x (cx cy cz a q inv), q = -log2(e) / 2 s^2 and inv = 1 / s^2 computed on the
+ * host (Blobs.params).  eta = 1 + sum a exp(-|x - c|^2 / 2 s^2) = 1 + sum a 2^(q |x - c|^2).
+ * Inlined by force: PoCL builds with -Dinline= and left it a call, its vectors through memory. */
+inline __attribute__((always_inline)) realv field_eval(FIELD_PARAMS, realv x, realv y,
+                                                       realv z, realv *gx, realv *gy,
+                                                       realv *gz) {
     realv eta = RV(1), ax = RV(0), ay = RV(0), az = RV(0);
+#pragma unroll
     for (int k = 0; k < NBLOBS; ++k) {
-        __global const REAL *b = fp + 5 * k;
+        __global const REAL *b = fp + 6 * k;
         realv px = x - b[0], py = y - b[1], pz = z - b[2];
-        REAL inv = (REAL)1 / (b[4] * b[4]);
-        realv g = b[3] * exp((REAL)-0.5 * inv * (px * px + py * py + pz * pz));
+        realv g = b[3] * blob_exp2(b[4] * (px * px + py * py + pz * pz));
+        realv gi = g * b[5];
         eta += g;
-        ax -= g * inv * px;
-        ay -= g * inv * py;
-        az -= g * inv * pz;
+        ax -= gi * px;
+        ay -= gi * py;
+        az -= gi * pz;
     }
     *gx = ax;
     *gy = ay;
@@ -226,58 +257,129 @@ inline realv solid_sdf(FIELD_PARAMS, realv x, realv y, realv z, realv *nx, realv
 
 #elif defined(FIELD_DROP)
 /* fp: cx cy cz R H n w.  Body of revolution about z: r(t) = R sin t sin^2(t/2),
- * z(t) = H cos t, t in [0, pi]. Distance to the profile by sampling then Newton. */
+ * z(t) = H cos t, t in [0, pi]. Distance to the profile: the nearest of DROP_SAMPLES + 1
+ * samples t_k, then Newton on u = t - t_k within the sample interval the descent points
+ * into (bisection where Newton would leave it), the point (cos t, sin t) turned by each step
+ * with sin and cos as series: no trigonometric calls, which made the drop 70x slower than
+ * the sphere. A lane stops once its step is below DROP_TOL. Drop.foot in
+ * clrefract/fields/analytic.py is the same arithmetic. */
 #define SOLID_N fp[5]
 #define SOLID_W fp[6]
 #define DROP_SAMPLES 24
-#define DROP_NEWTON 5
+#define DROP_NEWTON 8
+#ifdef REAL_IS_DOUBLE
+#define DROP_TOL 1e-9
+#else
+#define DROP_TOL 1e-5f
+#endif
+/* (cos, sin) of t_k = k pi / DROP_SAMPLES */
+__constant REAL DROP_CS[DROP_SAMPLES + 1][2] = {
+    {(REAL)1.0, (REAL)0.0},
+    {(REAL)0.9914448613738104, (REAL)0.13052619222005157},
+    {(REAL)0.9659258262890683, (REAL)0.25881904510252074},
+    {(REAL)0.9238795325112867, (REAL)0.3826834323650898},
+    {(REAL)0.8660254037844387, (REAL)0.49999999999999994},
+    {(REAL)0.7933533402912352, (REAL)0.6087614290087207},
+    {(REAL)0.7071067811865476, (REAL)0.7071067811865475},
+    {(REAL)0.6087614290087207, (REAL)0.7933533402912352},
+    {(REAL)0.5000000000000001, (REAL)0.8660254037844386},
+    {(REAL)0.38268343236508984, (REAL)0.9238795325112867},
+    {(REAL)0.25881904510252074, (REAL)0.9659258262890683},
+    {(REAL)0.1305261922200517, (REAL)0.9914448613738104},
+    {(REAL)6.123233995736766e-17, (REAL)1.0},
+    {(REAL)-0.1305261922200516, (REAL)0.9914448613738104},
+    {(REAL)-0.25881904510252063, (REAL)0.9659258262890683},
+    {(REAL)-0.3826834323650895, (REAL)0.9238795325112868},
+    {(REAL)-0.4999999999999998, (REAL)0.8660254037844387},
+    {(REAL)-0.6087614290087207, (REAL)0.7933533402912352},
+    {(REAL)-0.7071067811865475, (REAL)0.7071067811865476},
+    {(REAL)-0.793353340291235, (REAL)0.6087614290087209},
+    {(REAL)-0.8660254037844387, (REAL)0.49999999999999994},
+    {(REAL)-0.9238795325112867, (REAL)0.3826834323650899},
+    {(REAL)-0.9659258262890682, (REAL)0.258819045102521},
+    {(REAL)-0.9914448613738104, (REAL)0.130526192220052},
+    {(REAL)-1.0, (REAL)1.2246467991473532e-16}};
 inline realv solid_sdf(FIELD_PARAMS, realv x, realv y, realv z, realv *nx, realv *ny,
                        realv *nz) {
     realv px = x - fp[0], py = y - fp[1], pz = z - fp[2];
-    REAL R = fp[3], H = fp[4];
+    const REAL hR = (REAL)0.5 * fp[3], H = fp[4];
+    const REAL dt = (REAL)M_PI / (REAL)DROP_SAMPLES;
     realv rho = sqrt(px * px + py * py);
-    realv best_t = RV(0), best_d2 = RV(INFINITY);
+    /* a lower bound: the distance to the drop's cylinder (radius 3 sqrt 3 R / 8, |z| < H).
+     * Lanes more than a band width w beyond it are outside the band (eta 1, no gradient):
+     * they return the bound, and where all lanes do the search is skipped. */
+    realv er0 = fmax(rho - RV(fp[3] * (REAL)0.649519052838329), RV(0));
+    realv ez0 = fmax(fabs(pz) - RV(H), RV(0));
+    realv bound = sqrt(er0 * er0 + ez0 * ez0);
+    maskv far = bound > RV(SOLID_W), near = bound <= RV(SOLID_W);
+    *nx = RV(0);
+    *ny = RV(0);
+    *nz = RV(0);
+    if (!ANY(near))
+        return bound;
+    realv c = RV(1), s = RV(0), kb = RV(0), best_d2 = RV(INFINITY);
     for (int k = 0; k <= DROP_SAMPLES; ++k) {
-        REAL t = (REAL)M_PI * (REAL)k / (REAL)DROP_SAMPLES;
-        REAL ct = cos(t), st = sin(t);
-        realv dr = RV((REAL)0.5 * R * st * (1 - ct)) - rho, dz = RV(H * ct) - pz;
+        const REAL ck = DROP_CS[k][0], sk = DROP_CS[k][1];
+        realv dr = RV(hR * sk * (1 - ck)) - rho, dz = RV(H * ck) - pz;
         realv d2 = dr * dr + dz * dz;
         maskv m = d2 < best_d2;
         best_d2 = SEL(best_d2, d2, m);
-        best_t = SEL(best_t, RV(t), m);
+        c = SEL(c, RV(ck), m);
+        s = SEL(s, RV(sk), m);
+        kb = SEL(kb, RV((REAL)k), m);
     }
-    realv t = best_t;
+    realv u = RV(0), lo = RV(0), hi = RV(0);
+    maskv open = near;
     for (int it = 0; it < DROP_NEWTON; ++it) {
-        realv ct = cos(t), st = sin(t);
-        realv c2t = ct * ct - st * st, s2t = RV(2) * st * ct;
-        realv r = (REAL)0.5 * R * st * (RV(1) - ct), zc = H * ct;
-        realv r1 = (REAL)0.5 * R * (ct - c2t), z1 = -H * st;
-        realv r2 = (REAL)0.5 * R * (RV(2) * s2t - st), z2 = -H * ct;
+        realv c2t = c * c - s * s;
+        realv r = hR * s * (RV(1) - c), zc = H * c;
+        realv r1 = hR * (c - c2t), z1 = -H * s;
+        realv r2 = hR * (RV(4) * s * c - s), z2 = -H * c;
         realv g = (r - rho) * r1 + (zc - pz) * z1;
         realv dg = r1 * r1 + z1 * z1 + (r - rho) * r2 + (zc - pz) * z2;
-        realv tn = t - g / SEL(dg, RV(1), fabs(dg) < RV(REAL_EPS));
-        t = clamp(SEL(tn, t, dg <= RV(0)), RV(0), RV(M_PI));
+        if (it == 0) { /* the interval the descent points into (the inner one at the ends) */
+            maskv up = (g < RV(0) || kb == RV(0)) && kb < RV(DROP_SAMPLES);
+            lo = SEL(RV(-dt), RV(0), up || kb == RV(0));
+            hi = SEL(RV(0), RV(dt), up);
+        } else {
+            lo = SEL(lo, u, g < RV(0));
+            hi = SEL(u, hi, g < RV(0));
+        }
+        realv un = u - g / SEL(RV(1), dg, dg > RV(0));
+        maskv ok = dg > RV(0) && un >= lo && un <= hi;
+        realv step = SEL(RV(0), SEL(RV(0.5) * (lo + hi), un, ok) - u, open);
+        realv q = step * step;
+        realv sn_ = RV(1) - q * RV(1.0 / 42);
+        sn_ = step * (RV(1) - q * RV(1.0 / 6) * (RV(1) - q * RV(1.0 / 20) * sn_));
+        realv cs_ = RV(1) - q * RV(0.5) * (RV(1) - q * RV(1.0 / 12) * (RV(1) - q * RV(1.0 / 30)));
+        realv cn = c * cs_ - s * sn_, sn = s * cs_ + c * sn_;
+        realv inv = rsqrt(cn * cn + sn * sn);
+        c = cn * inv;
+        s = fmax(sn * inv, RV(0));
+        u += step;
+        open = open && fabs(step) > RV(DROP_TOL);
+        if (!ANY(open))
+            break;
     }
-    realv ct = cos(t), st = sin(t);
-    realv er = rho - (REAL)0.5 * R * st * (RV(1) - ct), ez = pz - H * ct;
+    realv er = rho - hR * s * (RV(1) - c), ez = pz - H * c;
     realv dist = sqrt(er * er + ez * ez);
-    /* inside: |z| < H and rho below the profile radius at that height */
-    realv tz = acos(clamp(pz / H, RV(-1), RV(1)));
-    realv rz = (REAL)0.5 * R * sin(tz) * (RV(1) - cos(tz));
+    /* inside: |z| < H and rho below the profile radius at that height (cos t = z / H) */
+    realv uz = clamp(pz / H, RV(-1), RV(1));
+    realv rz = hR * sqrt(RV(1) - uz * uz) * (RV(1) - uz);
     realv sgn = SEL(RV(1), RV(-1), fabs(pz) < RV(H) && rho < rz);
     /* gradient: away from the curve, or the curve's outward normal when on it */
-    realv c2t = ct * ct - st * st;
-    realv onx = H * st, onz = (REAL)0.5 * R * (ct - c2t);
+    realv c2t = c * c - s * s;
+    realv onx = H * s, onz = hR * (c - c2t);
     realv on = fmax(sqrt(onx * onx + onz * onz), RV(REAL_EPS));
-    maskv far = dist > RV(1e-4) * (R + H);
+    maskv away = dist > RV(1e-4) * (RV(2) * hR + H);
     realv inv = RV(1) / fmax(dist, RV(REAL_EPS));
-    realv gr = SEL(onx / on, sgn * er * inv, far);
-    realv gz_ = SEL(onz / on, sgn * ez * inv, far);
+    realv gr = SEL(onx / on, sgn * er * inv, away);
+    realv gz_ = SEL(onz / on, sgn * ez * inv, away);
     realv irho = SEL(RV(0), RV(1) / fmax(rho, RV(REAL_EPS)), rho > RV(REAL_EPS));
-    *nx = gr * px * irho;
-    *ny = gr * py * irho;
-    *nz = gz_;
-    return sgn * dist;
+    *nx = SEL(gr * px * irho, RV(0), far);
+    *ny = SEL(gr * py * irho, RV(0), far);
+    *nz = SEL(gz_, RV(0), far);
+    return SEL(sgn * dist, bound, far);
 }
 #else
 #error "no FIELD_* kind defined"

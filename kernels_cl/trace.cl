@@ -101,8 +101,8 @@ inline void rkn4_incr(FIELD_PARAMS, realv h, realv region, realv x, realv y, rea
 #endif
 
 /* One step's increments (dx, dv) from (x, v); h per lane (interface steps shorten it). The
- * caller adds them (with compensated summation in trace_rays: at 1e-3 mm steps, float32
- * x + h v would lose the increment's low bits on every step). */
+ * caller adds them (compensated in trace_rays where built with TRACE_COMPENSATED: at 1e-3 mm
+ * steps, float32 x + h v would lose the increment's low bits on every step). */
 inline void ode_incr(FIELD_PARAMS, realv h, realv region, realv x0, realv y0, realv z0, realv vx0, realv vy0,
                      realv vz0, realv *ix, realv *iy, realv *iz, realv *ivx, realv *ivy,
                      realv *ivz) {
@@ -152,13 +152,23 @@ inline void ode_step(FIELD_PARAMS, realv h, realv *x, realv *y, realv *z, realv 
     *vx += ivx; *vy += ivy; *vz += ivz;
 }
 
-/* Kahan summation s += d with compensation c, into (ns, nc): applied only where accepted. */
+/* Kahan summation s += d with compensation c, into (ns, nc): applied only where accepted.
+ * Built only with TRACE_COMPENSATED (the tracer sets it where rounding calls for it:
+ * clrefract/tracer.py compensated_sums); else a plain sum, c stays 0 and folds away. */
+#ifdef TRACE_COMPENSATED
 #define KAHAN(s, c, d, ns, nc)                                                                  \
     do {                                                                                      \
         realv y_ = (d) - (c);                                                                 \
         (ns) = (s) + y_;                                                                      \
         (nc) = ((ns) - (s)) - y_;                                                             \
     } while (0)
+#else
+#define KAHAN(s, c, d, ns, nc)                                                                  \
+    do {                                                                                      \
+        (ns) = (s) + (d);                                                                     \
+        (nc) = (c);                                                                           \
+    } while (0)
+#endif
 
 /* The state (x, v) plus the increments (ix .. ivz), compensated: the sums in nx .. nvz, their
  * compensations in ncx .. ncvz (from cx .. cvz). */

@@ -1,7 +1,8 @@
 """Forward tracing benchmark: throughput per field kind beside Dr.Jit, the speed/accuracy
 trade of the integrators on the Luneburg lens, and long rays traced in one pass beside two.
 
-    python tools/bench_trace.py [--rays 262144] [--part long-rays] [--json bench_results/trace.json]
+    python tools/bench_trace.py [--rays 262144] [--part fields|long-rays] [--fields blobs,drop]
+        [--json bench_results/trace.json]
 
 Prints two tables and writes them as JSON. Absolute times on a shared machine are noise;
 compare the rows of one run.
@@ -44,7 +45,54 @@ def best_of(fn, repeats: int):
     return best, out
 
 
-def bench_fields(n: int, step: float, repeats: int) -> list[dict]:
+def hashgrid_export(field) -> dict:
+    """A hash grid's layout and parameters as drjit_peer's hash grid takes them."""
+    c = field.config
+    return dict(
+        box_lo=field.box.lo,
+        box_hi=field.box.hi,
+        margin=field.box.margin,
+        features=c.features,
+        log2_table=c.log2_table,
+        resolutions=c.resolutions,
+        dense=c.dense,
+        interp=c.interp,
+        output=c.output,
+        eta_max=c.eta_max,
+        tables=list(field.tables),
+        layers=field.mlp_layers(),
+    )
+
+
+def hashgrids() -> list[tuple[str, object]]:
+    """The hash grid at the fit's default shape (FitConfig's levels, table, MLP; the sigmoid
+    output of a fit from empty space: a ramp costs the same per evaluation) and at
+    HashGridConfig's larger one (instant-ngp's), as initialised."""
+    from dataclasses import replace
+
+    from clrefract.fields.hashgrid import HashGridConfig, HashGridField
+    from clrefract.fit.config import FitConfig
+    from clrefract.fit.kinds import hashgrid_config
+
+    fit = replace(hashgrid_config(FitConfig(field="hashgrid"), 1.5), output="sigmoid")
+    out = []
+    for cfg in (fit, HashGridConfig()):
+        name = f"hashgrid-{cfg.levels}x{cfg.features}-2^{cfg.log2_table}-{cfg.hidden}x{cfg.layers}"
+        out.append((name, HashGridField(cfg, BOX, seed=0)))
+    return out
+
+
+def field_error(eval_fn, field, n: int = 4096, seed: int = 7) -> float:
+    """Largest difference of eta and of grad eta (n random points in the box) from the
+    field's float64 NumPy reference."""
+    pts = np.random.default_rng(seed).uniform(BOX.lo, BOX.hi, (n, 3))
+    eta, grad = eval_fn(pts)
+    eta_ref, grad_ref = field.eval(pts)
+    return float(max(np.abs(eta - eta_ref).max(), np.abs(grad - grad_ref).max()))
+
+
+def bench_fields(n: int, step: float, repeats: int, only: str = "") -> list[dict]:
+    """Throughput rows per field and lane width; `only`: comma-separated name prefixes."""
     o, d = workload(n)
     blobs = Blobs.random(4, amplitude=0.1, seed=3)
     fields = [
@@ -54,74 +102,82 @@ def bench_fields(n: int, step: float, repeats: int) -> list[dict]:
         ("prism", Prism()),
         ("drop", Drop()),
     ]
-    try:
-        from clrefract.fields.voxel import VoxelGrid
+    from clrefract.fields.voxel import VoxelGrid
 
-        for interp in ("trilinear", "smoothstep", "bspline"):
-            fields.append(
-                (f"voxel-128-{interp}", VoxelGrid.from_field(Sphere(width=4.0), BOX, 128, interp))
-            )
-    except ImportError:
-        pass
+    for interp in ("trilinear", "smoothstep", "bspline"):
+        fields.append(
+            (f"voxel-128-{interp}", VoxelGrid.from_field(Sphere(width=4.0), BOX, 128, interp))
+        )
+    fields += hashgrids()
+    if only:
+        fields = [(k, f) for k, f in fields if any(k.startswith(p) for p in only.split(","))]
     try:
-        from clrefract.fields.hashgrid import HashGridConfig, HashGridField
-
-        fields.append(("hashgrid-16x2-64x2", HashGridField(HashGridConfig(), BOX, seed=0)))
-    except ImportError:
-        pass
+        import drjit_peer
+    except ImportError as exc:
+        print(f"(Dr.Jit peer unavailable: {exc})", file=sys.stderr)
+        drjit_peer = None
     rows = []
     dev = default_runtime().info.kind
     lane_choices = sorted({1, default_runtime().default_lanes("float32")})
+    cap = 4 * 174 * int(1 / step + 1)
     for name, f in fields:
+        hashed = name.startswith("hash")
+        # expensive fields get fewer rays so every row takes similar time
+        m = n if not hashed else max(n // 32, 4096)
+        peer = drjit_peer is not None and (name == "blobs" or hashed)
+        # the float64 trace the fields with a Dr.Jit peer are checked against
+        ref = None
+        if peer:
+            settings = TraceSettings(step=step, precision="float64", lanes=8)
+            ref = Tracer(f, BOX, settings).trace(o[:m], d[:m]).direction
+        field_rows = []
         for lanes in lane_choices:
-            # expensive fields get fewer rays so every row takes similar time
-            m = n if not name.startswith("hash") else max(n // 32, 4096)
             tr = Tracer(f, BOX, TraceSettings(step=step, lanes=lanes))
             tr.trace(o[:256], d[:256])
             sec, res = best_of(lambda: tr.trace(o[:m], d[:m]), repeats)  # noqa: B023
             steps = int(res.steps.sum())
-            rows.append(
-                {
-                    "engine": f"clrefract ({dev}, {lanes} lanes)",
-                    "field": name,
-                    "rays": m,
-                    "steps": steps,
-                    "seconds": sec,
-                    "steps_per_s": steps / sec,
-                }
-            )
-    try:
-        from drjit_peer import drjit_trace_blobs
-    except ImportError as exc:
-        print(f"(Dr.Jit peer unavailable: {exc})", file=sys.stderr)
-        return rows
-    args = (
-        o,
-        d,
-        np.asarray(blobs.centers),
-        np.asarray(blobs.amplitudes),
-        np.asarray(blobs.sigmas),
-        BOX.lo,
-        BOX.hi,
-        step,
-        4 * 174 * int(1 / step + 1),
-    )
-    drjit_trace_blobs(*args)  # JIT warm-up
-    sec, res = best_of(lambda: drjit_trace_blobs(*args), repeats)
-    steps = int(np.sum(res["steps"]))
-    ref = Tracer(blobs, BOX, TraceSettings(step=step, precision="float64", lanes=8)).trace(o, d)
-    err = float(np.abs(res["direction"] - ref.direction).max())
-    rows.append(
-        {
+            row = {
+                "engine": f"clrefract ({dev}, {lanes} lanes)",
+                "field": name,
+                "rays": m,
+                "steps": steps,
+                "seconds": sec,
+                "steps_per_s": steps / sec,
+            }
+            if ref is not None:
+                row["max_dir_diff_vs_f64"] = float(np.abs(res.direction - ref).max())
+            if hashed:
+                row["max_field_err"] = field_error(tr.eval_field, f)
+            field_rows.append(row)
+        rows += field_rows
+        if not peer:
+            continue
+        if hashed:
+            grid = hashgrid_export(f)
+            args = (o[:m], d[:m], grid, BOX.lo, BOX.hi, step, cap)
+            run = drjit_peer.drjit_trace_hashgrid
+        else:
+            c, a, s = (np.asarray(v) for v in (f.centers, f.amplitudes, f.sigmas))
+            args = (o, d, c, a, s, BOX.lo, BOX.hi, step, cap)
+            run = drjit_peer.drjit_trace_blobs
+        run(*args)  # JIT warm-up
+        sec, res = best_of(lambda: run(*args, warmup=False), repeats)  # noqa: B023
+        steps = int(np.sum(res["steps"]))
+        row = {
             "engine": "Dr.Jit LLVM (peer)",
-            "field": "blobs",
-            "rays": n,
+            "field": name,
+            "rays": m,
             "steps": steps,
             "seconds": sec,
             "steps_per_s": steps / sec,
-            "max_dir_diff_vs_f64": err,
+            "max_dir_diff_vs_f64": float(np.abs(res["direction"] - ref).max()),
         }
-    )
+        if hashed:
+            pts_eval = lambda p: drjit_peer.drjit_eval_hashgrid(p, grid)  # noqa: B023, E731
+            row["max_field_err"] = field_error(pts_eval, f)
+        for r in field_rows:
+            r["vs_drjit"] = r["steps_per_s"] / row["steps_per_s"]
+        rows.append(row)
     return rows
 
 
@@ -286,16 +342,19 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--tradeoff-rays", type=int, default=20000)
     ap.add_argument("--json", default="bench_results/trace.json")
-    ap.add_argument("--part", choices=("all", "long-rays"), default="all")
+    ap.add_argument("--part", choices=("all", "fields", "long-rays"), default="all")
+    ap.add_argument("--fields", default="", help="throughput rows of these fields only")
     args = ap.parse_args()
     info = default_runtime().info
     print(f"device: {info.platform} / {info.name}\n")
     report = {"device": info.name}
-    if args.part == "all":
-        fields = bench_fields(args.rays, args.step, args.repeats)
+    if args.part in ("all", "fields"):
+        fields = bench_fields(args.rays, args.step, args.repeats, args.fields)
         print(f"Throughput, step {args.step} mm, RKN4 float32 (ray-steps per second):")
-        cols = ["engine", "field", "rays", "steps", "seconds", "steps_per_s", "max_dir_diff_vs_f64"]
-        print_table(fields, cols)
+        cols = ["engine", "field", "rays", "steps", "seconds", "steps_per_s", "vs_drjit"]
+        print_table(fields, [*cols, "max_dir_diff_vs_f64", "max_field_err"])
+        report.update(throughput=fields)
+    if args.part == "all":
         trade = bench_tradeoff(args.tradeoff_rays, args.repeats)
         print("\nSpeed/accuracy on the Luneburg lens (exit direction vs closed form):")
         cols = ["precision", "integrator", "step", "max_err_deg", "mean_err_deg", "seconds"]
@@ -304,12 +363,13 @@ def main() -> None:
         print("\nThe same inside the lens only (smooth field: no kink at the lens surface):")
         cols = ["precision", "integrator", "step", "steps", "max_err_deg", "pos_err_mm"]
         print_table(inner, [*cols, "seconds"])
-        report.update(throughput=fields, tradeoff=trade)
-    long = bench_long_rays(max(args.rays // 4, 4096), args.repeats)
-    print("\nLong rays: every ray to the full cap in one pass, or those past a diagonal again:")
-    cols = ["field", "rays", "second_pass", "trapped", "one_pass_s", "two_passes_s"]
-    print_table(long, [*cols, "speedup", "same_bits"])
-    report["long_rays"] = long
+        report.update(tradeoff=trade, interior=inner)
+    if args.part in ("all", "long-rays"):
+        long = bench_long_rays(max(args.rays // 4, 4096), args.repeats)
+        print("\nLong rays: every ray to the full cap in one pass, or those past a diagonal again:")
+        cols = ["field", "rays", "second_pass", "trapped", "one_pass_s", "two_passes_s"]
+        print_table(long, [*cols, "speedup", "same_bits"])
+        report["long_rays"] = long
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=2))

@@ -14,7 +14,11 @@ are a fair comparison:
 
 The field is the analytic Gaussian-blob field
 ``eta(x) = 1 + sum_k a_k exp(-|x - c_k|^2 / (2 s_k^2))`` with the blob parameters baked into
-the traced program as literals (the sum is unrolled).
+the traced program as literals (the sum is unrolled), or clrefract's hash grid + MLP
+(``drjit_trace_hashgrid``, ``drjit_eval_hashgrid``: its layout from
+clrefract/fields/hashgrid.py, its parameters exported by bench_trace.hashgrid_export; the
+levels and the MLP unrolled, the weights literals, the tables gathered, eta's gradient in
+forward mode as clrefract's kernel computes it).
 
 ``drjit_trace_blobs`` times one run of the traced computation (tracing the Python graph,
 ``dr.eval`` and the copy back to NumPy). With ``warmup=True`` (the default) it first runs the
@@ -53,6 +57,18 @@ def _types(dtype):
     raise ValueError(f"dtype must be float32 or float64, got {dtype!r}")
 
 
+def _aligned(a, npt):
+    """A copy of `a` at a 64-byte boundary: Dr.Jit maps NumPy's memory and compiles aligned
+    and unaligned loads apart, so inputs at other addresses missed its kernel cache (a
+    hash grid's kernel: 25 s to build again)."""
+    a = np.asarray(a, dtype=npt).reshape(-1)
+    buf = np.empty(a.size + 64, dtype=npt)
+    off = (-buf.ctypes.data % 64) // buf.itemsize
+    out = buf[off : off + a.size]
+    out[:] = a
+    return out
+
+
 def _blob_terms(centers, amps, sigmas):
     centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
     amps = np.asarray(amps, dtype=np.float64).reshape(-1)
@@ -65,17 +81,13 @@ def _blob_terms(centers, amps, sigmas):
     ]
 
 
-def _drjit_run(origins, directions, blobs, box_lo, box_hi, h, max_steps, dtype):
-    Fl, Arr3, npt = _types(dtype)
-    lo = [float(v) for v in box_lo]
-    hi = [float(v) for v in box_hi]
-    h = float(h)
-    max_steps = int(max_steps)
+def _blobs_fn(blobs, Fl, Arr3):
+    """eta and grad eta of the blob field, the sum over blobs unrolled with literal
+    parameters."""
     inv2s2 = [-0.5 / (s * s) for (_, _, s) in blobs]
     inv_s2 = [1.0 / (s * s) for (_, _, s) in blobs]
 
-    def field_D(x):
-        # D = eta grad eta, sum over blobs unrolled with literal parameters.
+    def field(x):
         eta = Fl(1.0)
         gx = Fl(0.0)
         gy = Fl(0.0)
@@ -91,7 +103,174 @@ def _drjit_run(origins, directions, blobs, box_lo, box_hi, h, max_steps, dtype):
             gx = dr.fma(w, dx, gx)
             gy = dr.fma(w, dy, gy)
             gz = dr.fma(w, dz, gz)
-        return eta, Arr3(eta * gx, eta * gy, eta * gz)
+        return eta, Arr3(gx, gy, gz)
+
+    return field
+
+
+HASH_PRIMES = (1, 2654435761, 805459861)  # clrefract's (instant-ngp's) spatial hash
+
+
+def _smoother(t):
+    t = _min(_max(t, 0.0), 1.0)
+    return t * t * t * (t * (t * 6.0 - 15.0) + 10.0)
+
+
+def _smoother_d(t):
+    inside = (t > 0.0) & (t < 1.0)
+    return dr.select(inside, 30.0 * t * t * (t * (t - 2.0) + 1.0), 0.0)
+
+
+def _hashgrid_fn(grid, Fl, Arr3, npt):
+    """eta and grad eta of clrefract's hash grid + MLP (clrefract/fields/hashgrid.py's
+    layout), from the parameters `grid` (hashgrid_export's dict) as a Dr.Jit user would
+    write it: the levels and the MLP unrolled at trace time, the tables gathered from
+    device arrays, the weights as literals, the gradient in forward mode alongside."""
+    lo = [float(v) for v in grid["box_lo"]]
+    size = [float(b) - float(a) for a, b in zip(grid["box_lo"], grid["box_hi"])]
+    margin = float(grid["margin"])
+    feats_per = int(grid["features"])
+    mask = (1 << int(grid["log2_table"])) - 1
+    smooth = grid["interp"] == "smoothstep"
+    ramp = grid["output"] == "ramp"
+    k_out = float(grid["eta_max"]) - 1.0
+    tables = [Fl(_aligned(t.reshape(-1), npt)) for t in grid["tables"]]
+    layers = [(np.asarray(w, float), np.asarray(b, float)) for w, b in grid["layers"]]
+
+    def axis(uc, inside, n, scale):
+        p = uc * float(n)
+        c = _min(_max(dr.floor(p), 0.0), float(n - 1))
+        t = p - c
+        if smooth:
+            return UInt32(c), t * t * (3.0 - 2.0 * t), inside * (6.0 * scale) * t * (1.0 - t)
+        return UInt32(c), t, inside * scale
+
+    def window_axis(x, a, b):
+        d0 = (x - a) / margin - 1.0
+        d1 = (b - x) / margin - 1.0
+        s0, s1 = _smoother(d0), _smoother(d1)
+        return s0 * s1, (_smoother_d(d0) * s1 - s0 * _smoother_d(d1)) / margin
+
+    def field(x):
+        xs = [x.x, x.y, x.z]
+        u = [(xs[a] - lo[a]) / size[a] for a in range(3)]
+        uc = [_min(_max(u[a], 0.0), 1.0) for a in range(3)]
+        ins = [dr.select(u[a] == uc[a], Fl(1.0), Fl(0.0)) for a in range(3)]
+        f, fx, fy, fz = [], [], [], []
+        for lvl, n in enumerate(grid["resolutions"]):
+            (i, sx, dsx), (j, sy, dsy), (k, sz, dsz) = (
+                axis(uc[a], ins[a], n, n / size[a]) for a in range(3)
+            )
+            if grid["dense"][lvl]:
+                s1 = n + 1
+                base = (i * s1 + j) * s1 + k
+                offs = [0, 1, s1, s1 + 1, s1 * s1, s1 * s1 + 1, s1 * s1 + s1, s1 * s1 + s1 + 1]
+                idx = [base + o for o in offs]
+            else:
+                hy0, hz0 = j * HASH_PRIMES[1], k * HASH_PRIMES[2]
+                hy1, hz1 = hy0 + HASH_PRIMES[1], hz0 + HASH_PRIMES[2]
+                idx = [
+                    (ii ^ hy ^ hz) & mask
+                    for ii in (i, i + 1)
+                    for hy in (hy0, hy1)
+                    for hz in (hz0, hz1)
+                ]
+            corners = []
+            for c in range(8):
+                a, b, d = c >> 2, (c >> 1) & 1, c & 1
+                ax_ = sx if a else 1.0 - sx
+                ay_ = sy if b else 1.0 - sy
+                az_ = sz if d else 1.0 - sz
+                ayz = ay_ * az_
+                corners.append(
+                    (
+                        ax_ * ayz,
+                        (dsx if a else -dsx) * ayz,
+                        ax_ * (dsy if b else -dsy) * az_,
+                        ax_ * ay_ * (dsz if d else -dsz),
+                    )
+                )
+            for q in range(feats_per):
+                v, gx, gy, gz = Fl(0.0), Fl(0.0), Fl(0.0), Fl(0.0)
+                for c in range(8):
+                    t = dr.gather(Fl, tables[lvl], idx[c] * feats_per + q)
+                    w, wx, wy, wz = corners[c]
+                    v = dr.fma(w, t, v)
+                    gx = dr.fma(wx, t, gx)
+                    gy = dr.fma(wy, t, gy)
+                    gz = dr.fma(wz, t, gz)
+                f.append(v)
+                fx.append(gx)
+                fy.append(gy)
+                fz.append(gz)
+        # MLP, forward mode: h = W a + b, dh = W da, softplus on the hidden layers
+        for W, b in layers[:-1]:
+            nf, nx, ny, nz = [], [], [], []
+            for row, bias in zip(W, b):
+                v, gx, gy, gz = Fl(float(bias)), Fl(0.0), Fl(0.0), Fl(0.0)
+                for w, a, ax_, ay_, az_ in zip(row, f, fx, fy, fz):
+                    w = float(w)
+                    v = dr.fma(a, w, v)
+                    gx = dr.fma(ax_, w, gx)
+                    gy = dr.fma(ay_, w, gy)
+                    gz = dr.fma(az_, w, gz)
+                e = dr.exp(-dr.abs(v))
+                r = 1.0 / (1.0 + e)
+                sig = dr.select(v >= 0.0, r, e * r)
+                nf.append(_max(v, 0.0) + dr.log(1.0 + e))
+                nx.append(sig * gx)
+                ny.append(sig * gy)
+                nz.append(sig * gz)
+            f, fx, fy, fz = nf, nx, ny, nz
+        W, b = layers[-1]
+        o, ox, oy, oz = Fl(float(b[0])), Fl(0.0), Fl(0.0), Fl(0.0)
+        for w, a, ax_, ay_, az_ in zip(W[0], f, fx, fy, fz):
+            w = float(w)
+            o = dr.fma(a, w, o)
+            ox = dr.fma(ax_, w, ox)
+            oy = dr.fma(ay_, w, oy)
+            oz = dr.fma(az_, w, oz)
+        if ramp:
+            t = (o + 1.0) * 0.5
+            g1, dg = k_out * _smoother(t), (0.5 * k_out) * _smoother_d(t)
+        else:
+            e = dr.exp(-dr.abs(o))
+            r = 1.0 / (1.0 + e)
+            sig = dr.select(o >= 0.0, r, e * r)
+            g1 = k_out * sig
+            dg = g1 * (1.0 - sig)
+        (wa, da), (wb, db), (wc, dc) = (
+            window_axis(xs[a], lo[a], lo[a] + size[a]) for a in range(3)
+        )
+        win = wa * wb * wc
+        grad = Arr3(
+            da * wb * wc * g1 + win * dg * ox,
+            wa * db * wc * g1 + win * dg * oy,
+            wa * wb * dc * g1 + win * dg * oz,
+        )
+        return 1.0 + win * g1, grad
+
+    return field
+
+
+def _drjit_run(origins, directions, blobs, box_lo, box_hi, h, max_steps, dtype):
+    Fl, Arr3, _ = _types(dtype)
+    return _drjit_trace(
+        origins, directions, _blobs_fn(blobs, Fl, Arr3), box_lo, box_hi, h, max_steps, dtype
+    )
+
+
+def _drjit_trace(origins, directions, field, box_lo, box_hi, h, max_steps, dtype):
+    """The traced RKN4 loop through `field` (x -> (eta, grad eta), Dr.Jit arrays)."""
+    Fl, Arr3, npt = _types(dtype)
+    lo = [float(v) for v in box_lo]
+    hi = [float(v) for v in box_hi]
+    h = float(h)
+    max_steps = int(max_steps)
+
+    def field_D(x):
+        eta, g = field(x)
+        return eta, Arr3(eta * g.x, eta * g.y, eta * g.z)
 
     def eta_of(x):
         return field_D(x)[0]
@@ -106,8 +285,8 @@ def _drjit_run(origins, directions, blobs, box_lo, box_hi, h, max_steps, dtype):
             | (x.z > hi[2])
         )
 
-    o = Arr3(*[Fl(np.ascontiguousarray(origins[:, i], dtype=npt)) for i in range(3)])
-    d = Arr3(*[Fl(np.ascontiguousarray(directions[:, i], dtype=npt)) for i in range(3)])
+    o = Arr3(*[Fl(_aligned(origins[:, i], npt)) for i in range(3)])
+    d = Arr3(*[Fl(_aligned(directions[:, i], npt)) for i in range(3)])
     d = d / dr.norm(d)
 
     # Slab intersection with the box.
@@ -206,6 +385,39 @@ def drjit_trace_blobs(
     res = _drjit_run(*args)
     res["seconds"] = time.perf_counter() - t0
     return res
+
+
+def drjit_trace_hashgrid(
+    origins, directions, grid, box_lo, box_hi, h, max_steps, dtype="float32", warmup=True
+):
+    """Trace rays through clrefract's hash grid + MLP field with Dr.Jit (LLVM backend);
+    `grid`: the field's parameters (bench_trace.hashgrid_export). Returns the dict of
+    drjit_trace_blobs."""
+    origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    Fl, Arr3, npt = _types(dtype)
+    field = _hashgrid_fn(grid, Fl, Arr3, npt)
+
+    def run():
+        return _drjit_trace(origins, directions, field, box_lo, box_hi, h, max_steps, dtype)
+
+    if warmup:
+        run()
+    t0 = time.perf_counter()
+    res = run()
+    res["seconds"] = time.perf_counter() - t0
+    return res
+
+
+def drjit_eval_hashgrid(points, grid, dtype="float32"):
+    """eta (n,) and grad eta (n, 3) of the hash grid at points (n, 3), by the Dr.Jit field
+    the tracer above uses."""
+    Fl, Arr3, npt = _types(dtype)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    x = Arr3(*[Fl(_aligned(pts[:, i], npt)) for i in range(3)])
+    eta, g = _hashgrid_fn(grid, Fl, Arr3, npt)(x)
+    dr.eval(eta, g)
+    return np.asarray(eta.numpy(), np.float64), np.asarray(g.numpy(), np.float64).T.copy()
 
 
 def _np_field_D(x, blobs):

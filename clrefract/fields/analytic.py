@@ -17,6 +17,9 @@ Vec3 = tuple[float, float, float]
 
 class AnalyticField(Field):
     source = "field_analytic.cl"
+    # no kinks (every derivative continuous): the tracer builds without the steps that land
+    # on them. False unless a field says so.
+    smooth: bool = False
 
     def defines(self) -> dict:
         return {f"FIELD_{self.kind.upper().replace('-', '_')}": 1}
@@ -75,6 +78,7 @@ class Maxwell(AnalyticField):
     n0: float = 2.0
     center: Vec3 = (0.0, 0.0, 0.0)
     kind = "maxwell"
+    smooth = True
 
     def params(self):
         return np.array([*self.center, self.radius, self.n0], float)
@@ -125,6 +129,7 @@ class Blobs(AnalyticField):
     amplitudes: list = field(default_factory=lambda: [0.01])
     sigmas: list = field(default_factory=lambda: [10.0])
     kind = "blobs"
+    smooth = True
 
     def __post_init__(self):
         c = np.asarray(self.centers, float).reshape(-1, 3)
@@ -159,11 +164,14 @@ class Blobs(AnalyticField):
 
     @property
     def center_slots(self):
-        return tuple(5 * k + a for k in range(len(self.amplitudes)) for a in range(3))
+        return tuple(6 * k + a for k in range(len(self.amplitudes)) for a in range(3))
 
     def params(self):
-        c = np.asarray(self.centers)
-        return np.column_stack([c, self.amplitudes, self.sigmas]).ravel()
+        """Per blob: centre, amplitude, -log2(e) / 2 s^2 and 1 / s^2 (the kernel's
+        exponent of 2 and gradient factor, computed here in float64)."""
+        c, s2 = np.asarray(self.centers), np.asarray(self.sigmas) ** 2
+        q = -0.5 / np.log(2.0) / s2
+        return np.column_stack([c, self.amplitudes, q, 1.0 / s2]).ravel()
 
     @property
     def eta_max(self):
@@ -324,7 +332,8 @@ class Drop(SmoothSolid):
     center: Vec3 = (0.0, 0.0, 0.0)
     kind = "drop"
     samples = 24
-    newton = 5
+    newton = 8
+    newton_tol = 1e-9  # radians: a point whose step is smaller stops
 
     def __post_init__(self):
         self._check()
@@ -335,35 +344,64 @@ class Drop(SmoothSolid):
     def profile(self, t):
         return 0.5 * self.R * np.sin(t) * (1 - np.cos(t)), self.H * np.cos(t)
 
+    def foot(self, rho, z):
+        """(cos t, sin t) of the profile point nearest to (rho, z), as the kernel finds it:
+        the nearest of the samples t_k, then Newton on the offset u = t - t_k kept within the
+        sample interval that the descent points into (bisection where Newton would leave it:
+        near the tip, where the profile's derivative vanishes, plain Newton overshoots), the
+        point turned by each step with sin and cos as series."""
+        hR, H = 0.5 * self.R, self.H
+        n = self.samples
+        dt = np.pi / n
+        ts = dt * np.arange(n + 1)
+        cs, ss = np.cos(ts), np.sin(ts)
+        d2 = (hR * ss * (1 - cs) - rho[:, None]) ** 2 + (H * cs - z[:, None]) ** 2
+        k = np.argmin(d2, axis=1)
+        c, s = cs[k], ss[k]
+        u = np.zeros(len(c))
+        lo, hi = np.where(k > 0, -dt, 0.0), np.where(k < n, dt, 0.0)
+        open_ = np.ones(len(c), bool)
+        for it in range(self.newton):
+            c2t = c * c - s * s
+            r, zc = hR * s * (1 - c), H * c
+            r1, z1 = hR * (c - c2t), -H * s
+            r2, z2 = hR * (4 * s * c - s), -H * c
+            g = (r - rho) * r1 + (zc - z) * z1
+            dg = r1 * r1 + z1 * z1 + (r - rho) * r2 + (zc - z) * z2
+            if it == 0:  # the interval the descent points into (the inner one at the ends)
+                up = ((g < 0) | (k == 0)) & (k < n)
+                lo, hi = np.where(up, 0.0, lo), np.where(up, hi, 0.0)
+            else:
+                lo, hi = np.where(g < 0, u, lo), np.where(g < 0, hi, u)
+            un = u - g / np.where(dg > 0, dg, 1.0)
+            bad = (dg <= 0) | ~(un >= lo) | ~(un <= hi)
+            step = np.where(open_, np.where(bad, 0.5 * (lo + hi), un) - u, 0.0)
+            q = step * step
+            sn_ = step * (1 - q / 6 * (1 - q / 20 * (1 - q / 42)))
+            cs_ = 1 - q / 2 * (1 - q / 12 * (1 - q / 30))
+            cn, sn = c * cs_ - s * sn_, s * cs_ + c * sn_
+            inv = 1 / np.sqrt(cn * cn + sn * sn)
+            c, s, u = cn * inv, np.maximum(sn * inv, 0.0), u + step
+            open_ &= np.abs(step) > self.newton_tol
+            if not open_.any():
+                break
+        return c, s
+
     def sdf(self, pts):
-        R, H = self.R, self.H
+        hR, H = 0.5 * self.R, self.H
         p = pts - np.asarray(self.center)
         rho = np.hypot(p[:, 0], p[:, 1])
         z = p[:, 2]
-        ts = np.pi * np.arange(self.samples + 1) / self.samples
-        rs, zs = self.profile(ts)
-        d2 = (rs[None] - rho[:, None]) ** 2 + (zs[None] - z[:, None]) ** 2
-        t = ts[np.argmin(d2, axis=1)]
-        for _ in range(self.newton):
-            ct, st = np.cos(t), np.sin(t)
-            c2t, s2t = ct * ct - st * st, 2 * st * ct
-            r, zc = 0.5 * R * st * (1 - ct), H * ct
-            r1, z1 = 0.5 * R * (ct - c2t), -H * st
-            r2, z2 = 0.5 * R * (2 * s2t - st), -H * ct
-            g = (r - rho) * r1 + (zc - z) * z1
-            dg = r1 * r1 + z1 * z1 + (r - rho) * r2 + (zc - z) * z2
-            tn = t - g / np.where(np.abs(dg) < 1e-12, 1.0, dg)
-            t = np.clip(np.where(dg <= 0, t, tn), 0, np.pi)
-        ct, st = np.cos(t), np.sin(t)
-        er, ez = rho - 0.5 * R * st * (1 - ct), z - H * ct
+        c, s = self.foot(rho, z)
+        er, ez = rho - hR * s * (1 - c), z - H * c
         dist = np.hypot(er, ez)
-        tz = np.arccos(np.clip(z / H, -1, 1))
-        rz = 0.5 * R * np.sin(tz) * (1 - np.cos(tz))
+        # inside: |z| < H and rho below the profile's radius at that height (cos t = z / H)
+        u = np.clip(z / H, -1, 1)
+        rz = hR * np.sqrt(1 - u * u) * (1 - u)
         sgn = np.where((np.abs(z) < H) & (rho < rz), -1.0, 1.0)
-        c2t = ct * ct - st * st
-        onx, onz = H * st, 0.5 * R * (ct - c2t)
+        onx, onz = H * s, hR * (c - (c * c - s * s))
         on = np.maximum(np.hypot(onx, onz), 1e-300)
-        far = dist > 1e-4 * (R + H)
+        far = dist > 1e-4 * (self.R + H)
         inv = 1 / np.maximum(dist, 1e-300)
         gr = np.where(far, sgn * er * inv, onx / on)
         gz = np.where(far, sgn * ez * inv, onz / on)
