@@ -248,25 +248,6 @@ def test_a_small_interface_fit_climbs_from_its_hull_start(sphere_12x24, tmp_path
     assert (run / "surface.ply").is_file() and result["chamfer_mm"] < 1.5
 
 
-def test_the_held_out_loss_of_a_small_held_out_set_takes_every_ray_once(sphere_12x24):
-    """Where the held-out views' rays fit in a batch, the held-out loss is theirs, each once:
-    the same for every seed (a sample drawn with replacement moved the 24 x 24 sphere's start
-    by 14% between seeds, more than a fit's gain)."""
-    from clrefract.dataset import Dataset
-    from clrefract.fit import load_config
-    from clrefract.fit.objective import Objective
-    from clrefract.fit.rays import TrainingRays
-
-    picks = []
-    for seed in (0, 1):
-        cfg = load_config(None, dict(field="interface", seed=seed))
-        rays = TrainingRays(Dataset(sphere_12x24), cfg)
-        idx = Objective(rays, cfg.loss, cfg.batch, seed).held_out_idx()
-        assert len(rays.held) == 576 and np.array_equal(np.sort(idx), np.sort(rays.held))
-        picks.append(idx)
-    assert np.array_equal(picks[0], picks[1])
-
-
 def test_the_command_line_picks_the_model_the_held_out_views_prefer(sphere_8x24, tmp_path):
     """Without --field-kind, `clrefract fit` starts the interface and a voxel grid in
     RUN/candidates, goes on with the start of lower held-out loss (model.json says both), and

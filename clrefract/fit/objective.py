@@ -42,23 +42,17 @@ class Objective:
 
     def held_out_idx(self) -> np.ndarray:
         """A fixed batch of the held-out views' rays, most through their masks (elsewhere
-        every field near the hull renders alike), each ray once; all of them where they fit
-        in a batch, so that the held-out loss does not hang on which rays were drawn.
-        Training rays without held-out views."""
+        every field near the hull renders alike); training rays without held-out views."""
         r = self.rays
         if len(r.held) == 0:
             return r.fixed_batch(Tag.VALIDATION)
         if self._held_idx is None:
-            if len(r.held) <= self.batch:
-                self._held_idx = np.asarray(r.held)
-                return self._held_idx
             rng = np.random.default_rng([self.seed, *Tag.VALIDATION])
             marked = np.intersect1d(r.marked(), r.held, assume_unique=True)
-            k = min(len(marked), self.batch * 3 // 4)
-            picked = rng.choice(marked, k, replace=False)
-            rest = np.setdiff1d(r.held, picked, assume_unique=True)
+            size = min(self.batch, len(r.held))
+            k = min(len(marked), size * 3 // 4)
             self._held_idx = np.concatenate(
-                [picked, rng.choice(rest, self.batch - k, replace=False)]
+                [rng.choice(marked, k, replace=False), rng.choice(r.held, size - k)]
             )
         return self._held_idx
 
