@@ -401,6 +401,7 @@ def _cmd_dataset_import(args) -> int:
         env_rotation=args.env_rotation,
         known_distance=args.known_distance,
         images=Path(args.images) if args.images else None,
+        up=args.up,
     )
     print(json.dumps(info, indent=2))
     return 0
@@ -886,6 +887,14 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         help="the scale instead: the images named I and J have their centres MM mm apart",
     )
     p.add_argument("--images", help="a COLMAP project's image folder (default: SRC/images)")
+    p.add_argument(
+        "--up",
+        metavar="auto|keep|X,Y,Z",
+        help="a COLMAP model's up direction, turned to +z with its heading kept: auto (the "
+        "default) estimates it from the cameras (the plane of their centres, else the normal "
+        "to their image-right axes, else their mean image-up vector), keep leaves the model's "
+        "frame, X,Y,Z gives it in the model's world (write --up=-X,Y,Z where X is negative)",
+    )
     # --pose-box: in the poses' units, where every other --box is in mm (old name: --box)
     _add_box_option(
         p,

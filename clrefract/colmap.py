@@ -11,7 +11,7 @@ carry over as they are.
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +44,15 @@ GL_FROM_CV = np.diag([1.0, -1.0, -1.0])  # flips y and z: its own inverse
 MIN_BOX_POINTS = 20  # fewer sparse points than this about the object: the cameras' region
 BOX_PERCENTILES = (2.0, 98.0)  # of the points on each axis: a few strays do not widen the box
 EXPORT_POINTS = 2000  # points spread over a ground-truth surface by export_colmap
+# a spread of vectors is flat (near a plane) where its smallest singular value is below
+# FLAT_RATIO of the middle one, and that plane is well spanned where the middle one is above
+# SPAN_RATIO of the largest (cameras along a line, or all facing one way, fix no normal)
+FLAT_RATIO = 0.3
+SPAN_RATIO = 0.2
+MIN_UP_AGREEMENT = 0.25  # the mean image-up vector's length below which cameras disagree
+# a plane normal further than this from the mean image-up vector is a wall of cameras (a
+# forward-facing capture), not the ground
+MAX_NORMAL_LEAN_DEG = 45.0
 
 
 def pycolmap_module(where: Path | str):
@@ -220,6 +229,114 @@ def box_from_points(points: np.ndarray, cams: list[Camera], where: str) -> tuple
     return Box(tuple(lo), tuple(hi), default_margin(lo, hi)), (
         f"the sparse points ({len(inside)} of {len(points)} in the region the cameras look at)"
     )
+
+
+@dataclass
+class Levelling:
+    """The turn applied to a COLMAP model's world on import: `rotation` takes the model's
+    world to the dataset's (+z up); `up` is the up direction in the model's world and `source`
+    says where it came from."""
+
+    rotation: np.ndarray
+    up: np.ndarray
+    source: str
+
+    @property
+    def degrees(self) -> float:
+        return float(np.degrees(np.arccos(np.clip(self.up[2], -1.0, 1.0))))
+
+
+UP_WORDS = ("auto", "keep")  # --up's words: estimate the up direction, or keep the model's
+
+
+def parse_up(value: str | None) -> str | np.ndarray:
+    """'auto' (also for None), 'keep', or the unit vector of 'X,Y,Z' (--up); anything else is
+    refused in one line."""
+    text = "auto" if value is None else str(value).strip().lower()
+    if text in UP_WORDS:
+        return text
+    try:
+        v = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        v = np.zeros(0)
+    if v.shape != (3,) or not np.isfinite(v).all() or not np.linalg.norm(v) > 0:
+        raise ClrefractError(
+            f"--up: expected auto, keep or X,Y,Z (a nonzero direction in the COLMAP model's "
+            f"world), got {value!r}"
+        )
+    return v / np.linalg.norm(v)
+
+
+def _flat_normal(vectors: np.ndarray, sign: np.ndarray) -> np.ndarray | None:
+    """The normal of the well-spanned plane the rows lie near, on the side of the unit vector
+    `sign` and within MAX_NORMAL_LEAN_DEG of it; None where there is no such plane."""
+    if len(vectors) < 3:
+        return None
+    _, s, vt = np.linalg.svd(vectors, full_matrices=False)
+    if not (s[1] > SPAN_RATIO * s[0] and s[2] < FLAT_RATIO * s[1]):
+        return None
+    normal = vt[2] if vt[2] @ sign >= 0 else -vt[2]
+    return normal if normal @ sign >= np.cos(np.radians(MAX_NORMAL_LEAN_DEG)) else None
+
+
+def estimate_up(cams: list[Camera], where: str) -> tuple[np.ndarray, str]:
+    """The world's up direction (unit) from the cameras, and which estimate gave it.
+
+    Where the camera centres lie near a plane (an orbit, a turntable) its normal; else, where
+    the cameras' image-right axes span a plane (cameras held without roll, facing many ways),
+    the normal to them, which unlike the mean image-up vector does not lean towards where the
+    cameras pitch; else the mean image-up vector. Both normals are signed to agree with the
+    mean image-up vector, and taken only within MAX_NORMAL_LEAN_DEG of it (the plane of a
+    forward-facing capture stands upright); cameras that disagree on it are refused."""
+    mean = np.mean([c.c2w[:3, 1] for c in cams], axis=0)  # OpenGL: +y is image up
+    agree = float(np.linalg.norm(mean))
+    if agree < MIN_UP_AGREEMENT:
+        raise ClrefractError(
+            f"{where}: the cameras disagree on which way is up (mean image-up vector of "
+            f"length {agree:.2f}); give the up direction with --up X,Y,Z, or --up keep"
+        )
+    mean /= agree
+    centres = np.array([c.position for c in cams])
+    normal = _flat_normal(centres - centres.mean(axis=0), mean)
+    if normal is not None:
+        return normal, "the plane of the camera centres"
+    normal = _flat_normal(np.array([c.c2w[:3, 0] for c in cams]), mean)
+    if normal is not None:
+        return normal, "the normal to the cameras' image-right axes"
+    return mean, "the cameras' mean image-up vector"
+
+
+def turn_to_z(up: np.ndarray) -> np.ndarray:
+    """The least rotation taking the unit vector `up` to +z (a turn about their common
+    normal), so that headings stay as they were."""
+    axis = np.cross(up, [0.0, 0.0, 1.0])
+    sin, cos = float(np.linalg.norm(axis)), float(up[2])
+    if sin < 1e-12:  # along z already, or opposite: a half turn about x
+        return np.eye(3) if cos > 0 else np.diag([1.0, -1.0, -1.0])
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(axis / sin * np.arctan2(sin, cos)).as_matrix()
+
+
+def level_capture(capture: ColmapCapture, up: str | np.ndarray) -> tuple[ColmapCapture, Levelling]:
+    """The capture with its world turned so that up is +z (cameras and sparse points), and
+    the turn. `up` is parse_up's: 'auto' estimates it (estimate_up), 'keep' turns nothing, a
+    vector is up in the model's world."""
+    where = str(model_file(capture.model, "images"))
+    if isinstance(up, str) and up == "keep":
+        return capture, Levelling(np.eye(3), np.array([0.0, 0.0, 1.0]), "--up keep")
+    if isinstance(up, str):
+        vec, source = estimate_up(capture.cameras, where)
+    else:
+        vec, source = np.asarray(up, np.float64), "--up"
+    rot = turn_to_z(vec)
+    cams = []
+    for cam in capture.cameras:
+        c2w = cam.c2w.copy()
+        c2w[:3, :] = rot @ c2w[:3, :]
+        cams.append(replace(cam, c2w=c2w))
+    turned = replace(capture, cameras=cams, points=capture.points @ rot.T)
+    return turned, Levelling(rot, vec, source)
 
 
 def _similarity(similarity) -> tuple[float, np.ndarray, np.ndarray]:

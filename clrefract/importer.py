@@ -5,7 +5,8 @@
     instant-ngp / COLMAP:      SRC/transforms.json; every 8th frame becomes a test view, and
                                its aabb_scale, scale and offset give the box (ngp_box)
     COLMAP sparse model:       SRC/sparse/0, SRC/sparse or SRC with cameras, images and
-                               points3D (.bin or .txt), images in SRC/images (colmap.py)
+                               points3D (.bin or .txt), images in SRC/images (colmap.py);
+                               its world is turned so that up is +z (--up)
 Poses are multiplied by --scale (or the scale --known-distance gives) into millimetres, frames
 and masks are copied beside the new transforms files, and scene.json records the box
 (--pose-box, else instant-ngp's, else a COLMAP model's sparse points, else the region the
@@ -25,9 +26,13 @@ import numpy as np
 from .cameras import IMAGE_SUFFIXES, Camera, load_transforms, save_transforms
 from .colmap import (
     ColmapCapture,
+    Levelling,
     box_from_points,
+    euler_degrees,
     find_model,
+    level_capture,
     model_file,
+    parse_up,
     read_colmap,
     split_by_name,
 )
@@ -46,7 +51,7 @@ from .dataset import (
     mask_file,
     write_scene,
 )
-from .envmap import EnvMap
+from .envmap import EnvMap, rotation_matrix
 from .errors import ClrefractError
 from .fields.base import Box
 from .imageio import HDR_SUFFIXES, ensure_out_dir
@@ -207,10 +212,14 @@ def import_capture(
     env_rotation: list[float] | None = None,
     known_distance: tuple[str, str, float] | None = None,
     images: Path | None = None,
+    up: str | None = None,
 ) -> dict:
     """Write a dataset folder `out` from a capture `src`; returns what was done. The scale is
     `scale` mm per unit, or the one `known_distance` (image, image, mm) gives, else 1; `images`
-    is a COLMAP project's image folder (default src/images)."""
+    is a COLMAP project's image folder (default src/images). A COLMAP model's world is turned
+    so that up is +z (`up`: parse_up's 'auto', the default, 'keep' or 'X,Y,Z'; see
+    level_capture); `env_rotation` and the sparse points are in the model's world, `box` in
+    the turned one."""
     src, out = Path(src), Path(out)
     if scale is not None and known_distance is not None:
         raise ClrefractError("give --scale or --known-distance, not both")
@@ -218,8 +227,13 @@ def import_capture(
         raise ClrefractError(f"--scale must be a positive number (mm per unit), got {scale}")
     if not 1.0 <= eta_range[0] < eta_range[1]:
         raise ClrefractError(f"--eta-range must be lo hi with 1 <= lo < hi, got {eta_range}")
+    up_spec = parse_up(up)
     capture = _colmap(src, images)
+    level = None
+    if capture is None and up is not None:
+        raise ClrefractError(f"{src}: --up is for a COLMAP project, and this is none")
     if capture is not None:
+        capture, level = level_capture(capture, up_spec)
         train, test, split_rule = split_by_name(capture.cameras, DEFAULT_HOLDOUT)
         layout, single, where = "colmap", None, str(model_file(capture.model, "images"))
     else:
@@ -247,6 +261,9 @@ def import_capture(
         )
     if env_rotation is not None and not finite_numbers(env_rotation, 3):
         raise ClrefractError(f"--env-rotation must be three numbers (degrees), got {env_rotation}")
+    if env_rotation is not None and level is not None and level.degrees > 0:
+        # given in the model's world: it turns with the world
+        env_rotation = euler_degrees(level.rotation @ rotation_matrix(env_rotation))
     EnvMap.from_file(env)  # a panorama that cannot be read is refused before any copy
     env_name = "envmap.hdr" if env.suffix.lower() in HDR_SUFFIXES else "envmap.exr"
     cams = {"train": [_scaled(c, scale) for c in train], "test": [_scaled(c, scale) for c in test]}
@@ -293,6 +310,7 @@ def import_capture(
                 "scale_from": scale_from,
                 "box_from": box_source,
                 **({"model": str(capture.model.resolve()), "split": split_rule} if capture else {}),
+                **(_up_record(level) if level else {}),
             }
         },
     )
@@ -307,4 +325,18 @@ def import_capture(
         "scale": scale,
         "scale_from": scale_from,
         **({"split": split_rule} if split_rule else {}),
+        **({"up_from": level.source, "up_turned_deg": round(level.degrees, 4)} if level else {}),
+        **({"envmap_rotation": scene.envmap_rotation} if level and env_rotation else {}),
+    }
+
+
+def _up_record(level: Levelling) -> dict:
+    """scene.json's record of a COLMAP model's levelling: where up came from, up in the
+    model's world, the angle turned and the rotation from the model's world to the
+    dataset's (before the scale)."""
+    return {
+        "up_from": level.source,
+        "up_in_model": [round(float(x), 9) for x in level.up],
+        "up_turned_deg": round(level.degrees, 4),
+        "world_from_model": np.round(level.rotation, 12).tolist(),
     }

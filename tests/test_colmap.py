@@ -1,11 +1,13 @@
 """COLMAP projects: a dataset exported to a COLMAP model in a random similarity imports back to
-the same cameras (scale from --known-distance), each COLMAP camera model gives the rays
-pycolmap gives, the box comes from the sparse points, and bad input is refused in one line."""
+the same cameras (scale from --known-distance, --up keep), each COLMAP camera model gives the
+rays pycolmap gives, the box comes from the sparse points, a tilted model is levelled (its up
+turned to +z, from the cameras or --up) and bad input is refused in one line."""
 
 import json
 import re
 import shutil
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,22 +15,31 @@ import pycolmap  # the `test` extra installs it
 import pytest
 from scipy.spatial.transform import Rotation
 
-from clrefract.cameras import look_at
+from clrefract.calibrate import calibrate, rotation_angle
+from clrefract.cameras import Camera, fibonacci_sphere_cameras, look_at, orbit_cameras
 from clrefract.cli import main
 from clrefract.colmap import (
     READ_MODELS,
     add_camera,
     add_posed_image,
     colmap_from_c2w,
+    estimate_up,
     export_colmap,
     read_colmap,
 )
 from clrefract.dataset import Dataset
+from clrefract.errors import ClrefractError
 from clrefract.imageio import write_png
 from clrefract.synth import MakeOptions, make_dataset
 
 RADIUS = 20.0  # mm: the sphere scene's object, centred on the origin
 SCALE = 1 / 37  # model units per mm of the random similarity
+# the tilted model's similarity: 70 degrees about an oblique axis tilts up by 68
+AXIS = np.array([1.0, 2.0, 0.5]) / np.linalg.norm([1.0, 2.0, 0.5])
+TILT = Rotation.from_rotvec(np.radians(70.0) * AXIS).as_matrix()
+SHIFT = np.array([0.4, -1.1, 2.3])  # model units
+SEMI_AXES = np.array([8.0, 8.0, 25.0])  # mm: a tall ellipsoid of sparse points
+Z = np.array([0.0, 0.0, 1.0])
 
 
 @pytest.fixture(scope="module")
@@ -75,9 +86,10 @@ def test_similarity_is_undone(dataset, tmp_path, capsys, text):
     out = tmp_path / "data"
     argv = ["dataset", "import", str(proj), "--out", str(out), "--eta-range", "1", "1.5"]
     argv += ["--known-distance", "r_000.exr", "r_003.exr", str(mm)]
-    argv += ["--env-rotation", *map(str, info["env_rotation"])]
+    argv += ["--env-rotation", *map(str, info["env_rotation"]), "--up", "keep"]
     assert main(argv) == 0
     done = json.loads(capsys.readouterr().out)
+    assert (done["up_from"], done["up_turned_deg"]) == ("--up keep", 0.0)
     assert abs(done["scale"] * SCALE - 1) < 1e-3  # mm per unit: 37
     assert done["split"] == "train/ and test/ names" and done["layout"] == "colmap"
     scene = json.loads((out / "scene.json").read_text())
@@ -209,3 +221,170 @@ def test_known_distance_also_scales_a_transforms_capture(dataset, tmp_path, caps
     assert main([*argv, "--known-distance", "r_001", "r_002.exr", str(mm)]) == 0
     assert abs(json.loads(capsys.readouterr().out)["scale"] / 3.0 - 1) < 1e-9
     _refused(capsys, [*argv, "--known-distance", "r_001", "r_002", "9", "--scale", "2"], "not both")
+
+
+def _degrees(a: np.ndarray, b: np.ndarray) -> float:
+    return float(
+        np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
+    )
+
+
+def _jitter(cams: list[Camera], rng, deg: float) -> list[Camera]:
+    """The cameras each turned about its centre by up to about `deg` degrees (a hand's
+    wobble), then the whole capture tilted by TILT."""
+    out = []
+    for c in cams:
+        c2w = c.c2w.copy()
+        wobble = Rotation.from_rotvec(np.radians(deg) * rng.normal(size=3) / 2).as_matrix()
+        c2w[:3, :3] = TILT @ wobble @ c2w[:3, :3]
+        c2w[:3, 3] = TILT @ c2w[:3, 3]
+        out.append(replace(c, c2w=c2w))
+    return out
+
+
+def _facing(n: int) -> list[Camera]:
+    """A forward-facing capture: level cameras on an upright 100 x 40 mm grid, all looking
+    at a point 300 mm ahead (their centres lie in a wall, not on the ground)."""
+    xs, zs = np.meshgrid(np.linspace(-50, 50, n // 3), [-20.0, 0.0, 20.0])
+    cam = fibonacci_sphere_cameras(1, width=32, height=32)[0]
+    return [
+        replace(cam, c2w=look_at([x, -300.0, z], target=[0.0, 0.0, z]))
+        for x, z in zip(xs.ravel(), zs.ravel())
+    ]
+
+
+@pytest.mark.parametrize(
+    "layout, source",
+    [
+        ("orbit", "the plane of the camera centres"),
+        ("sphere", "the normal to the cameras' image-right axes"),
+        ("facing", "the cameras' mean image-up vector"),
+    ],
+)
+def test_up_is_estimated_from_each_kind_of_capture(layout, source):
+    rng = np.random.default_rng(5)
+    cams = {
+        "orbit": lambda: orbit_cameras(24, elevation_deg=35.0),
+        "sphere": lambda: fibonacci_sphere_cameras(16),  # its mean up leans 4.5 degrees
+        "facing": lambda: _facing(24),
+    }[layout]()
+    up, found = estimate_up(_jitter(cams, rng, 0.5), "images.bin")
+    assert found == source
+    assert _degrees(up, TILT @ Z) < 0.5
+
+
+def test_cameras_that_disagree_on_up_are_refused():
+    # 24 cameras of random roll about their view: their mean image-up vector is short
+    rng = np.random.default_rng(2)
+    cams = []
+    for c in orbit_cameras(24):
+        c2w = c.c2w.copy()
+        c2w[:3, :3] = (
+            c2w[:3, :3] @ Rotation.from_rotvec([0, 0, rng.uniform(0, 2 * np.pi)]).as_matrix()
+        )
+        cams.append(replace(c, c2w=c2w))
+    length = np.linalg.norm(np.mean([c.c2w[:3, 1] for c in cams], axis=0))
+    with pytest.raises(ClrefractError, match=r"images\.bin: the cameras disagree .* --up") as e:
+        estimate_up(cams, "images.bin")
+    assert f"length {length:.2f}" in str(e.value) and length < 0.25
+
+
+@pytest.fixture(scope="module")
+def tilted(dataset, tmp_path_factory):
+    """The sphere dataset exported in the similarity (SCALE, TILT, SHIFT), its sparse points
+    replaced by a tall ellipsoid about the origin (SEMI_AXES, in the dataset's world):
+    (project, export's info, the ellipsoid's points in mm)."""
+    proj = tmp_path_factory.mktemp("tilted") / "proj"
+    info = export_colmap(dataset, proj, similarity=(SCALE, TILT, SHIFT))
+    rec = pycolmap.Reconstruction(str(proj / "sparse" / "0"))
+    for pid in list(rec.point3D_ids()):
+        rec.delete_point3D(pid)
+    p = np.random.default_rng(11).normal(size=(600, 3))
+    p = SEMI_AXES * p / np.linalg.norm(p, axis=1, keepdims=True)
+    for x in p:
+        rec.add_point3D(SCALE * TILT @ x + SHIFT, pycolmap.Track())
+    rec.write_binary(str(proj / "sparse" / "0"))
+    return proj, info, p
+
+
+def _turn(orig: Dataset, new: Dataset) -> tuple[np.ndarray, np.ndarray, float]:
+    """The rotation M and shift c that take the original cameras' centres onto the imported
+    ones (x -> M x + c, least squares), and the largest miss (mm)."""
+    a = np.array([c.position for c in orig.train + orig.test])
+    b = np.array([c.position for c in new.train + new.test])
+    m = Rotation.align_vectors(b - b.mean(0), a - a.mean(0))[0].as_matrix()
+    c = b.mean(0) - m @ a.mean(0)
+    return m, c, float(np.abs(a @ m.T + c - b).max())
+
+
+def test_tilted_model_is_levelled(dataset, tilted, tmp_path, capsys):
+    proj, info, ellipsoid = tilted
+    out = tmp_path / "data"
+    argv = ["dataset", "import", str(proj), "--out", str(out), "--scale", str(1 / SCALE)]
+    assert main([*argv, "--env-rotation", *map(str, info["env_rotation"])]) == 0
+    done = json.loads(capsys.readouterr().out)
+    tilt = _degrees(TILT @ Z, Z)
+    assert tilt > 60
+    assert done["up_from"] == "the normal to the cameras' image-right axes"
+    assert abs(done["up_turned_deg"] - tilt) < 0.01
+    orig, new = Dataset(dataset), Dataset(out)
+    m, c, miss = _turn(orig, new)
+    assert miss < 1e-6 * 200  # the centres: the original's, turned and shifted
+    assert _degrees(m @ Z, Z) < 1.0  # up is up again: the turn is about z alone
+    for a, b in zip(orig.train + orig.test, new.train + new.test):
+        assert np.abs(b.c2w[:3, :3] - m @ a.c2w[:3, :3]).max() < 1e-6
+    # the panorama turns with the world: about z alone, as the cameras
+    assert np.abs(new.scene.envmap_matrix() - m).max() < 1e-6
+    # the box is the percentile box of the levelled points, grown alike on every side
+    p_lo, p_hi = np.percentile(ellipsoid @ m.T + c, (2, 98), axis=0)
+    lo, hi = np.asarray(new.box.lo), np.asarray(new.box.hi)
+    assert np.abs((lo + hi) / 2 - (p_lo + p_hi) / 2).max() < 1e-4
+    grow = (hi - lo) - (p_hi - p_lo)
+    assert np.ptp(grow) < 1e-4 and hi[2] - lo[2] > hi[0] - lo[0] + 30  # tall, as the object
+    rec = json.loads((out / "scene.json").read_text())["import"]
+    assert rec["up_from"] == done["up_from"] and rec["up_turned_deg"] == done["up_turned_deg"]
+    assert _degrees(np.array(rec["up_in_model"]), TILT @ Z) < 1e-6
+    assert np.abs(np.array(rec["world_from_model"]) - m @ TILT.T).max() < 1e-6
+    assert rec["box_from"].startswith("the sparse points (600 of 600")
+
+
+def test_explicit_up_is_used(dataset, tilted, tmp_path, capsys):
+    proj, _, _ = tilted
+    # up 10 degrees off the true one: the import leans by that
+    side = np.cross(TILT @ Z, [1.0, 0.0, 0.0])
+    off = Rotation.from_rotvec(np.radians(10.0) * side / np.linalg.norm(side)).apply(TILT @ Z)
+    out = tmp_path / "data"
+    argv = ["dataset", "import", str(proj), "--out", str(out), "--scale", str(1 / SCALE)]
+    assert main([*argv, "--up=" + ",".join(f"{x:.12f}" for x in 3.0 * off)]) == 0
+    done = json.loads(capsys.readouterr().out)
+    assert done["up_from"] == "--up"
+    assert abs(done["up_turned_deg"] - _degrees(off, Z)) < 1e-4  # rounded to 4 places
+    m, _, miss = _turn(Dataset(dataset), Dataset(out))
+    assert miss < 1e-6 * 200 and abs(_degrees(m @ Z, Z) - 10.0) < 1e-6
+
+
+def test_levelled_import_lets_register_env_find_the_heading(dataset, tilted, tmp_path, capsys):
+    proj, _, _ = tilted
+    out = tmp_path / "data"
+    argv = ["dataset", "import", str(proj), "--out", str(out), "--scale", str(1 / SCALE)]
+    assert main(argv) == 0
+    capsys.readouterr()
+    m, _, _ = _turn(Dataset(dataset), Dataset(out))
+    assert abs(np.degrees(np.arctan2(m[1, 0], m[0, 0]))) > 10  # the heading to be found
+    found = calibrate(out)["envmap_rotation"]
+    assert rotation_angle(found, m) < 1.0  # degrees
+
+
+@pytest.mark.parametrize("up", ["sideways", "1,2", "0,0,0", "nan,0,1", "1,2,3,4"])
+def test_bad_up_is_refused(tilted, tmp_path, capsys, up):
+    proj, _, _ = tilted
+    out = tmp_path / "data"
+    _refused(capsys, ["dataset", "import", str(proj), "--out", str(out), "--up", up], "--up")
+    assert not out.exists()
+
+
+def test_up_on_a_transforms_capture_is_refused(dataset, tmp_path, capsys):
+    out = tmp_path / "data"
+    argv = ["dataset", "import", str(dataset), "--out", str(out), "--up", "keep"]
+    _refused(capsys, argv, "--up is for a COLMAP project")
+    assert not out.exists()

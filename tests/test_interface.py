@@ -224,11 +224,11 @@ def test_an_interface_field_file_round_trips_and_renders_the_same(tmp_path):
 
 
 def test_a_small_interface_fit_climbs_from_its_hull_start(sphere_12x24, tmp_path):
-    """The 24 x 24 glass sphere (9 training views): the interface's hull start, then 300
+    """The 24 x 24 glass sphere (9 training views): the interface's hull start, then 150
     steps of smoothed descent at the kind's own rates, judged at its last step (one held-out
-    view of 576 pixels is too few to pick a step by). The test views gain at least 0.6 dB
-    over the start (measured +1.22 to +1.31 dB over seeds 0 to 3, 27.48 -> 28.7 dB, the
-    index from 1.396 towards 1.5)."""
+    view of 576 pixels is too few to pick a step by). The test views gain at least 0.8 dB
+    over the start (measured +1.45 to +2.38 dB over seeds 0 to 5, 27.48 -> 28.93..29.86 dB,
+    the index from 1.396 to 1.408..1.415)."""
     import io
     import json
 
@@ -236,14 +236,14 @@ def test_a_small_interface_fit_climbs_from_its_hull_start(sphere_12x24, tmp_path
 
     cfg = load_config(
         None,
-        dict(field="interface", tighten_hull=False, shell_starts=False, iterations=300,
+        dict(field="interface", tighten_hull=False, shell_starts=False, iterations=150,
              validate_every=0, seed=1),
     )  # fmt: skip
     assert cfg.optimizer == "descent" and cfg.descent_sigma == 4.0 and cfg.lr_phi == 0.02
     run = tmp_path / "run"
     fit = prepare_fit(sphere_12x24, run, cfg, stream=io.StringIO())
     result = fit.run()
-    assert result["test_psnr"] > result["start"]["test_psnr"] + 0.6, result
+    assert result["test_psnr"] > result["start"]["test_psnr"] + 0.8, result
     assert abs(fit.field.eta - 1.5) < abs(json.loads((run / "init.json").read_text())["eta"] - 1.5)
     assert (run / "surface.ply").is_file() and result["chamfer_mm"] < 1.5
 
