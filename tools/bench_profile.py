@@ -7,11 +7,14 @@ launches (NumPy, Python, argument set-up, the enqueue calls themselves).
 
 A small fit per kind on one synthetic sphere, at the kind's own optimiser, then timed steps.
 While they run, pyopencl's blocking entry points (`BLOCKING`) are wrapped with timers: the
-time inside them is `waited`, the rest of the step is `host`. Kernel launches are timed too
-(an enqueue must return at once), and the thread's CPU time outside the waits should make up
-the host time: a large `gap` means a blocking call the wrapper missed (or a busy machine).
-Kinds whose host share passes --threshold are then run under cProfile. Absolute times on a
-shared machine are noise; compare the shares.
+time inside them is `waited`, the rest of the step is `host`. A non-blocking copy to or from
+host memory blocks too, as its event is dropped (pyopencl's NannyEvent waits for its copy):
+clrefract drops each at once, so the wrapper waits for it there. Kernel launches are timed
+(an enqueue must return at once; its CPU time says so where PoCL's threads take the core
+from it), and the thread's CPU time outside the waits should make up the host time: a large
+`gap` means a blocking call the wrapper missed, or a busy machine. Kinds whose host share
+passes --threshold are then run under cProfile. Absolute times on a shared machine are
+noise; compare the shares.
 """
 
 from __future__ import annotations
@@ -37,8 +40,9 @@ from bench_trace import print_table  # noqa: E402
 
 KINDS = ("voxel", "levelset", "hashgrid", "interface")
 # every pyopencl call in clrefract/ that can block the host on device work (grep of
-# clrefract/ for finish, wait and enqueue_copy): queue.finish(), enqueue_copy to or from the
-# host with is_blocking (its default), and the two ways to wait for events
+# clrefract/ for finish, wait and enqueue_): queue.finish(), enqueue_copy to or from the
+# host (blocking, or its event dropped), and the two ways to wait for events. All are
+# looked up on the module or the class at each call (runtime.cl is pyopencl itself)
 BLOCKING = ("CommandQueue.finish", "Event.wait", "wait_for_events", "enqueue_copy")
 # the launches: a Kernel called with its queue (clrefract launches no other way)
 LAUNCHES = ("Kernel.__call__",)
@@ -55,17 +59,18 @@ def _copy_blocks(cl, args, kwargs) -> bool:
 
 
 class WaitTimer:
-    """While entered, the seconds the entering thread spends blocked in pyopencl (`waited`),
-    in kernel launches (`launched`), and its CPU time outside the waits (`cpu`); `calls`
-    counts each entry point ("enqueue_copy" only where it blocked, "enqueue_copy (async)"
-    where it did not). `step()` measures one step's share of them. Calls from other threads
-    and calls nested in a timed call are not counted again."""
+    """While entered, pyopencl's blocking calls (BLOCKING) and launches (LAUNCHES) are timed
+    on the entering thread: `waited` and `launched` seconds, the thread's CPU time in each
+    (`wait_cpu`, `launch_cpu`), and `calls` per entry point ("enqueue_copy" where it blocked,
+    "enqueue_copy (dropped event)" where its event's drop did, "... (async)" where nothing
+    waited). `step()` gives one step's share. Calls from other threads, and calls inside a
+    timed call, are not counted again. Entered again, it goes on adding."""
 
     def __init__(self):
-        self.waited = self.launched = self.wait_cpu = 0.0
+        self.waited = self.launched = self.wait_cpu = self.launch_cpu = 0.0
         self.calls: Counter = Counter()
         self._saved: list = []
-        self._depth = 0
+        self._busy = False
         self._thread = None
 
     def __enter__(self) -> WaitTimer:
@@ -78,9 +83,8 @@ class WaitTimer:
             owner = owners[owner_name] if owner_name else cl
             fn = getattr(owner, attr)
             self._saved.append((owner, attr, fn))
-            launch = name in LAUNCHES
-            blocks = (lambda a, k: _copy_blocks(cl, a, k)) if attr == "enqueue_copy" else None
-            setattr(owner, attr, self._wrap(fn, attr, launch, blocks))
+            wrap = self._launch if name in LAUNCHES else self._wait
+            setattr(owner, attr, wrap(fn, attr, cl))
         return self
 
     def __exit__(self, *exc) -> None:
@@ -88,70 +92,92 @@ class WaitTimer:
             setattr(owner, attr, fn)
         self._saved.clear()
 
-    def _wrap(self, fn, name: str, launch: bool, blocks):
-        import pyopencl as cl
+    def _mine(self) -> bool:
+        return not self._busy and threading.get_ident() == self._thread
 
-        timer = self
+    def _clocked(self, fn, args, kwargs, then=None):
+        """fn's result, seconds and CPU seconds; `then(result)` runs inside the timing."""
+        self._busy = True
+        c0, t0 = time.thread_time(), time.perf_counter()
+        try:
+            out = fn(*args, **kwargs)
+            if then is not None:
+                then(out)
+        finally:
+            self._busy = False
+        return out, time.perf_counter() - t0, time.thread_time() - c0
 
-        def timed(*args, **kwargs):
-            if timer._depth or threading.get_ident() != timer._thread:
+    def _wait(self, fn, name: str, cl):
+        copy = name == "enqueue_copy"
+
+        def waiting(*args, **kwargs):  # cProfile's name for the time spent waiting
+            if not self._mine():
                 return fn(*args, **kwargs)
-            waits = not launch and (blocks is None or blocks(args, kwargs))
-            timer._depth += 1
-            c0, t0 = time.thread_time(), time.perf_counter()
-            try:
-                out = fn(*args, **kwargs)
-                if not waits and not launch and isinstance(out, cl.NannyEvent):
-                    # pyopencl waits for a copy to or from host memory when its event is
-                    # dropped, and clrefract drops every one at once: wait here, timed
+            blocks = not copy or _copy_blocks(cl, args, kwargs)
+            dropped = []
+
+            def drop(out):
+                # pyopencl waits for a copy to or from host memory as its event is dropped
+                # (NannyEvent), and clrefract drops every one at once: wait here, timed
+                if not blocks and isinstance(out, cl.NannyEvent):
                     out.wait()
-                    waits, name_ = True, f"{name} (dropped event)"
-                else:
-                    name_ = name
-                return out
-            finally:
-                dt = time.perf_counter() - t0
-                timer._depth -= 1
-                if waits:
-                    timer.waited += dt
-                    timer.wait_cpu += time.thread_time() - c0
-                    timer.calls[name_] += 1
-                elif launch:
-                    timer.launched += dt
-                    timer.calls["launch"] += 1
-                else:
-                    timer.calls[f"{name} (async)"] += 1
+                    dropped.append(out)
 
-        return timed
+            out, dt, cpu = self._clocked(fn, args, kwargs, drop)
+            if blocks or dropped:
+                self.waited += dt
+                self.wait_cpu += cpu
+                self.calls[name + (" (dropped event)" if dropped else "")] += 1
+            else:
+                self.calls[name + " (async)"] += 1
+            return out
 
-    def totals(self) -> tuple[float, float, float]:
-        return self.waited, self.launched, self.wait_cpu
+        return waiting
+
+    def _launch(self, fn, name: str, cl):
+        def launching(*args, **kwargs):
+            if not self._mine():
+                return fn(*args, **kwargs)
+            out, dt, cpu = self._clocked(fn, args, kwargs)
+            self.launched += dt
+            self.launch_cpu += cpu
+            self.calls["launch"] += 1
+            return out
+
+        return launching
+
+    def totals(self) -> tuple:
+        return self.waited, self.launched, self.wait_cpu, self.launch_cpu, self.calls["launch"]
 
     @contextmanager
     def step(self):
-        """Time the body: yields a dict that, once the body is done, holds wall_s,
-        waited_s, host_s (wall less waited), launch_s, cpu_s (the thread's CPU time
-        outside waits), launches and gap (1 - (waited + cpu) / wall)."""
+        """Time the body: yields a dict that, once the body is done, holds wall_s, waited_s,
+        host_s (wall less waited), launch_s and launch_cpu_s (the enqueues, host work),
+        cpu_s (the thread's CPU time outside the waits), launches, and gap: 1 - (waited +
+        cpu) / wall, the time the thread neither waited in a timed call nor ran (a wait
+        missed, or a busy machine)."""
         out: dict = {}
-        w0, l0, c_in0 = self.totals()
-        launches0 = self.calls["launch"]
+        before = self.totals()
         c0, t0 = time.thread_time(), time.perf_counter()
         yield out
         wall = time.perf_counter() - t0
         cpu = time.thread_time() - c0
-        waited, launched, c_in = (b - a for a, b in zip((w0, l0, c_in0), self.totals()))
+        waited, launched, wait_cpu, launch_cpu, launches = (
+            b - a for a, b in zip(before, self.totals())
+        )
         out.update(
             wall_s=wall,
             waited_s=waited,
             host_s=wall - waited,
             launch_s=launched,
-            cpu_s=cpu - c_in,
-            launches=self.calls["launch"] - launches0,
-            gap=1.0 - (waited + cpu - c_in) / wall,
+            launch_cpu_s=launch_cpu,
+            cpu_s=cpu - wait_cpu,
+            launches=launches,
+            gap=1.0 - (waited + cpu - wait_cpu) / wall,
         )
 
 
-def small_fit(kind: str, dataset: Path, run: Path, overrides: dict):
+def small_fit(kind: str, dataset: Path, run: Path, **overrides):
     """A fit of `kind` at its defaults (its own optimiser), started; the hull's extra
     searches off (they change the start, not the steps)."""
     from clrefract.fit import load_config, prepare_fit
@@ -181,16 +207,16 @@ def summary(kind: str, optimizer: str, steps: list[dict]) -> dict:
     def med(k):
         return float(np.median([s[k] for s in steps]))
 
-    wall, waited = med("wall_s"), float(np.median([s["waited_s"] for s in steps]))
-    host = float(np.median([s["host_s"] for s in steps]))
     return {
         "kind": kind,
         "optimizer": optimizer,
-        "step_ms": 1e3 * wall,
-        "waited_ms": 1e3 * waited,
-        "host_ms": 1e3 * host,
+        "step_ms": 1e3 * med("wall_s"),
+        "waited_ms": 1e3 * med("waited_s"),
+        "host_ms": 1e3 * med("host_s"),
         "host_share_pct": 100 * float(np.median([s["host_s"] / s["wall_s"] for s in steps])),
         "launch_ms": 1e3 * med("launch_s"),
+        "launch_cpu_ms": 1e3 * med("launch_cpu_s"),
+        "cpu_ms": 1e3 * med("cpu_s"),
         "launches": int(med("launches")),
         "gap_pct": 100 * med("gap"),
         "rays_per_step": int(med("rays")),
@@ -199,17 +225,20 @@ def summary(kind: str, optimizer: str, steps: list[dict]) -> dict:
 
 
 def profile(fit, steps: int, top: int) -> list[dict]:
-    """cProfile over `steps` steps: the functions of most own time (host work), with their
-    own and cumulative ms per step."""
+    """cProfile over `steps` steps, pyopencl timed as in `measure` (the rows "waiting" and
+    "launching" hold the time inside its calls): the functions of most own time, with
+    their own and cumulative ms per step."""
     prof = cProfile.Profile()
-    prof.enable()
-    for _ in range(steps):
-        fit.step()
-    prof.disable()
-    stats = pstats.Stats(prof)
+    with WaitTimer():
+        prof.enable()
+        for _ in range(steps):
+            fit.step()
+        prof.disable()
     rows = []
-    for (path, line, name), (_, calls, own, cum, _) in stats.stats.items():
+    for (path, line, name), (_, calls, own, cum, _) in pstats.Stats(prof).stats.items():
         where = f"{Path(path).name}:{line}" if line else path
+        if path == __file__ and name in ("waiting", "launching"):
+            name, where = f"{name} (pyopencl, timed)", "bench_profile.py"
         rows.append(
             {
                 "function": f"{name} ({where})",
@@ -236,30 +265,13 @@ def main() -> None:
     ap.add_argument("--json", default="bench_profile.json")
     args = ap.parse_args()
     from clrefract.runtime import default_runtime
-    from clrefract.synth import MakeOptions, make_dataset
 
-    kinds = args.kinds.split(",")
-    tmp = Path(tempfile.mkdtemp(prefix="bench_profile_"))
-    data = args.dataset
-    if data is None:
-        data = tmp / "sphere"
-        make_dataset("sphere", data, MakeOptions(views=args.views, res=args.res, env_width=512))
     info = default_runtime().info
     print(f"device: {info.platform} / {info.name}\n")
-    rows, profiles = [], {}
-    for kind in kinds:
-        t0 = time.perf_counter()
-        fit = small_fit(kind, data, tmp / kind, {})
-        print(f"{kind}: started in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
-        with WaitTimer() as timer:
-            steps = measure(fit, args.steps, args.warmup, timer)
-        row = summary(kind, fit.cfg.optimizer, steps)
-        row["calls_per_step"] = {k: v / (args.steps + args.warmup) for k, v in timer.calls.items()}
-        rows.append(row)
-        if args.profile_steps and row["host_share_pct"] > args.threshold:
-            profiles[kind] = profile(fit, args.profile_steps, args.top)
+    with tempfile.TemporaryDirectory(prefix="bench_profile_") as tmp:
+        rows, profiles = run_kinds(args, Path(tmp))
     cols = ["kind", "optimizer", "step_ms", "waited_ms", "host_ms", "host_share_pct"]
-    cols += ["rays_per_step", "launches", "launch_ms", "gap_pct"]
+    cols += ["rays_per_step", "launches", "launch_ms", "launch_cpu_ms", "cpu_ms", "gap_pct"]
     print(f"Median of {args.steps} steps after {args.warmup} ({args.views} views of {args.res}):")
     print_table(rows, cols)
     for kind, prof in profiles.items():
@@ -279,6 +291,31 @@ def main() -> None:
     }
     out.write_text(json.dumps(report, indent=2))
     print(f"\nwrote {out}")
+
+
+def run_kinds(args, tmp: Path) -> tuple[list[dict], dict]:
+    """The rows of each kind, and the cProfile rows of those above the threshold."""
+    from clrefract.synth import MakeOptions, make_dataset
+
+    data = args.dataset
+    if data is None:
+        data = tmp / "sphere"
+        make_dataset("sphere", data, MakeOptions(views=args.views, res=args.res))
+    rows, profiles = [], {}
+    for kind in args.kinds.split(","):
+        t0 = time.perf_counter()
+        fit = small_fit(kind, data, tmp / kind)
+        start = time.perf_counter() - t0
+        print(f"{kind}: started in {start:.1f} s", file=sys.stderr)
+        with WaitTimer() as timer:
+            steps = measure(fit, args.steps, args.warmup, timer)
+        row = summary(kind, fit.cfg.optimizer, steps)
+        row["start_s"] = start
+        row["calls_per_step"] = {k: v / (args.steps + args.warmup) for k, v in timer.calls.items()}
+        rows.append(row)
+        if args.profile_steps and row["host_share_pct"] > args.threshold:
+            profiles[kind] = profile(fit, args.profile_steps, args.top)
+    return rows, profiles
 
 
 if __name__ == "__main__":
