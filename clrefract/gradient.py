@@ -220,7 +220,7 @@ class GradientEngine:
         tr = self.tracer
         order = self._skip_order(origins, dirs) if tr.skip_empty else None
         chunks = self._chunks(len(origins), order)
-        pending = []
+        pending, launches = [], []
         for q, idx in zip(self.queues, chunks):
             o, m = tr._padded_columns(origins[idx], "ray origins")
             d, _ = tr._padded_columns(dirs[idx], "ray directions")
@@ -237,10 +237,10 @@ class GradientEngine:
             lattice = np.empty(size, np.int32) if tr.skip_empty else steps
             if tr.skip_empty:
                 args += [*tr._skip_args, Out(lattice)]
-            tr._enqueue(tr._k_trace, size // tr.lanes, args, q)
+            launches.append(tr.enqueue(tr._k_trace, size // tr.lanes, args, q))
             pending.append((idx, outs, status, steps, last, ckpt, o, d, lattice))
-        for q in self.queues:
-            q.finish()
+        for launch in launches:
+            launch.finish()
         return pending
 
     def loss_and_grad(
@@ -306,14 +306,14 @@ class GradientEngine:
             if self.adjoint == "discrete":
                 args.append(self._scratch_buffer(q, size))
             args += [Out(back[3]), tr.dtype(self.growth_max), Out(back[4]), *tr._skip_args]
-            tr._enqueue(self._k_adjoint, items, args, q)
-            jobs.append((idx, grad, partial, back, items))
+            launch = tr.enqueue(self._k_adjoint, items, args, q)
+            jobs.append((launch, idx, grad, partial, back, items))
         total = np.zeros(n_par)
         back_pos = np.empty((n, 3))
         gap = np.empty(n)
         growth = np.empty(n)
-        for q, (idx, grad, partial, back, items) in zip(self.queues, jobs):
-            q.finish()
+        for launch, idx, grad, partial, back, items in jobs:
+            launch.finish()
             total += grad[:n_par]
             if self.n_shared:
                 off = self.field.shared_offset

@@ -17,7 +17,7 @@ import numpy as np
 from .errors import ClrefractError
 from .fields.base import Box
 from .gradient import GradientResult, traced_loss
-from .runtime import Runtime, default_runtime
+from .runtime import Launch, Runtime, default_runtime
 from .tracer import Out, Status, TraceResult, TraceSettings, device_args, work_group_size
 
 MAX_EVENTS = 16  # crossings a ray may make before it counts as trapped (renders black)
@@ -97,7 +97,7 @@ class InterfaceTracer:
 
     def launch(self, kernel, n: int, args, queue=None):
         """Run `kernel` over n rays (fd, lip, n first), copying Out arrays back; returns the
-        queue, unfinished."""
+        Launch, unfinished."""
         cl = self.runtime.cl
         q = queue or self.runtime.queue
         bufs, back = device_args(self.runtime, args)
@@ -107,9 +107,7 @@ class InterfaceTracer:
             q, (items,), None if local is None else (local,), self._fd, self.lip, np.int32(n), *bufs
         )
         self.launch_bytes = sum(b.size for b in bufs if isinstance(b, cl.MemoryObject))
-        for a, b in back:
-            cl.enqueue_copy(q, a, b, is_blocking=False)
-        return q
+        return Launch(q, [cl.enqueue_copy(q, a, b, is_blocking=False) for a, b in back])
 
     def trace(self, origins, directions) -> TraceResult:
         """Rays to the box's exit: TraceResult with steps = the march's phi evaluations."""
@@ -228,12 +226,12 @@ class InterfaceEngine:
                 gbuf,
                 Out(geta),
             ]
-            tr.launch(tr.kernels.interface_adjoint, len(idx), args, q)
-            cl.enqueue_copy(q, grad, gbuf, is_blocking=False)
-            grads.append((q, grad, geta))
+            launch = tr.launch(tr.kernels.interface_adjoint, len(idx), args, q)
+            launch.hold(cl.enqueue_copy(q, grad, gbuf, is_blocking=False))
+            grads.append((launch, grad, geta))
         total = np.zeros(n_par)
-        for q, grad, geta in grads:
-            q.finish()
+        for launch, grad, geta in grads:
+            launch.finish()
             total += grad[:n_par]
             total[self.field.shared_offset] += geta.astype(np.float64).sum()
         if not np.isfinite(loss) or not np.all(np.isfinite(total)):

@@ -316,6 +316,22 @@ class Runtime:
         return np.float64 if precision == "float64" else np.float32
 
 
+class Launch:
+    """A launch in flight on one queue, with the events of its copies back to host memory:
+    pyopencl waits for such a copy when its event is dropped, which ran several queues one
+    after another; they are held until the queue is finished."""
+
+    def __init__(self, queue, events=()):
+        self.queue, self.events = queue, list(events)
+
+    def hold(self, event) -> None:
+        self.events.append(event)
+
+    def finish(self) -> None:
+        self.queue.finish()
+        self.events.clear()
+
+
 class Kernels:
     """The kernels of one built program, each created once and then reused."""
 

@@ -12,7 +12,7 @@ from .device_check import check_once, check_points
 from .errors import ClrefractError
 from .fields.base import Box, Field
 from .limits import check_count, check_device_buffer, max_steps_for
-from .runtime import Runtime, default_runtime
+from .runtime import Launch, Runtime, default_runtime
 
 INTEGRATORS = ("rkn4", "rk4", "euler", "dopri5")
 # field evaluations per step (per attempted step for the adaptive pair)
@@ -393,9 +393,9 @@ class Tracer:
             a = np.concatenate([a, np.repeat(a[-1:], pad, axis=0)])
         return [self._real(a[:, k]) for k in range(3)], n
 
-    def _enqueue(self, kernel, n_items: int, args, queue=None, local: int | None = None):
+    def enqueue(self, kernel, n_items: int, args, queue=None, local: int | None = None) -> Launch:
         """Launch with numpy inputs copied in, Out/InOut arrays copied back (non-blocking);
-        returns the queue, to be finished by the caller. local: work-group size (it must
+        returns the Launch, to be finished by the caller. local: work-group size (it must
         divide n_items), else work_group_size's."""
         cl = self.runtime.cl
         q = queue or self.runtime.queue
@@ -405,12 +405,10 @@ class Tracer:
         self.launch_bytes = sum(
             b.size for b in (self._fp, self._fd, *bufs) if isinstance(b, cl.MemoryObject)
         )
-        for a, b in back:
-            cl.enqueue_copy(q, a, b, is_blocking=False)
-        return q
+        return Launch(q, [cl.enqueue_copy(q, a, b, is_blocking=False) for a, b in back])
 
     def _run(self, kernel, n_items: int, args, queue=None) -> None:
-        self._enqueue(kernel, n_items, args, queue).finish()
+        self.enqueue(kernel, n_items, args, queue).finish()
 
     def trace(self, origins: np.ndarray, directions: np.ndarray) -> TraceResult:
         """Trace rays to the box's exit. In two passes: every ray up to `long_ray_steps`,
