@@ -222,8 +222,8 @@ class GradientEngine:
         chunks = self._chunks(len(origins), order)
         pending, launches = [], []
         for q, idx in zip(self.queues, chunks):
-            o, m = tr._padded_columns(origins[idx], "ray origins")
-            d, _ = tr._padded_columns(dirs[idx], "ray directions")
+            o, m = tr.padded_columns(origins[idx], "ray origins")
+            d, _ = tr.padded_columns(dirs[idx], "ray directions")
             size = len(o[0])
             outs = [np.empty(size, tr.dtype) for _ in range(6)]
             status, steps = np.empty(size, np.int32), np.empty(size, np.int32)
@@ -236,8 +236,8 @@ class GradientEngine:
             # backward pass; steps counts the work done
             lattice = np.empty(size, np.int32) if tr.skip_empty else steps
             if tr.skip_empty:
-                args += [*tr._skip_args, Out(lattice)]
-            launches.append(tr.enqueue(tr._k_trace, size // tr.lanes, args, q))
+                args += [*tr.skip_args, Out(lattice)]
+            launches.append(tr.enqueue(tr.trace_kernel, size // tr.lanes, args, q))
             pending.append((idx, outs, status, steps, last, ckpt, o, d, lattice))
         for launch in launches:
             launch.finish()
@@ -305,7 +305,7 @@ class GradientEngine:
             ]
             if self.adjoint == "discrete":
                 args.append(self._scratch_buffer(q, size))
-            args += [Out(back[3]), tr.dtype(self.growth_max), Out(back[4]), *tr._skip_args]
+            args += [Out(back[3]), tr.dtype(self.growth_max), Out(back[4]), *tr.skip_args]
             launch = tr.enqueue(self._k_adjoint, items, args, q)
             jobs.append((launch, idx, grad, partial, back, items))
         total = np.zeros(n_par)

@@ -282,12 +282,12 @@ class Tracer:
             if adjoint == "discrete":
                 sources.append("adjoint_discrete.cl")
         self.kernels = prg = self.runtime.build(sources, defines, precision)
-        self._k_trace = prg.trace_rays
+        self.trace_kernel = prg.trace_rays
         self._k_propagate = prg.propagate_rays
         self._k_eval = prg.eval_field
         cl = self.runtime.cl
         self._no_ckpt = cl.Buffer(self.runtime.context, cl.mem_flags.READ_WRITE, 64)
-        self._skip_args = []
+        self.skip_args = []
         self.launch_bytes = 0  # device buffers the last launch used (bench's memory column)
         self.upload_field()
         if field.device_checked:
@@ -327,7 +327,7 @@ class Tracer:
         cl = self.runtime.cl
         mf = cl.mem_flags
         self.occupancy = np.ascontiguousarray(distance, np.int32)
-        self._skip_args = [
+        self.skip_args = [
             cl.Buffer(
                 self.runtime.context,
                 mf.READ_ONLY | mf.COPY_HOST_PTR,
@@ -381,7 +381,7 @@ class Tracer:
             raise ClrefractError(f"{what} must have shape (n, 3), got {a.shape}")
         return a - self.offset
 
-    def _padded_columns(self, a: np.ndarray, what: str) -> tuple[list[np.ndarray], int]:
+    def padded_columns(self, a: np.ndarray, what: str) -> tuple[list[np.ndarray], int]:
         a = np.asarray(a, dtype=np.float64)
         if a.ndim != 2 or a.shape[1] != 3:
             raise ClrefractError(f"{what} must have shape (n, 3), got {a.shape}")
@@ -418,8 +418,8 @@ class Tracer:
         trapped, one pass took 1.6x as long as two. Each ray's result is its single
         pass's, to the bit where a ray's rounding does not hang on its launch (not at 1
         lane in float32 on pip's PoCL, which rounds by the launch's size, passes or not)."""
-        o, n = self._padded_columns(self._local(origins, "ray origins"), "ray origins")
-        d, _ = self._padded_columns(directions, "ray directions")
+        o, n = self.padded_columns(self._local(origins, "ray origins"), "ray origins")
+        d, _ = self.padded_columns(directions, "ray directions")
         if len(d[0]) != len(o[0]):
             raise ClrefractError("ray origins and directions differ in number")
         if np.any((d[0] == 0) & (d[1] == 0) & (d[2] == 0)):
@@ -455,8 +455,8 @@ class Tracer:
         scal = [self.dtype(self.step), np.int32(cap)]
         no_ckpt = [np.int32(0), self._no_ckpt]
         lattice = [Out(np.empty(m, np.int32))] if self.skip_empty else []
-        args = scal + o + d + outs + no_ckpt + self._skip_args + lattice
-        self._run(self._k_trace, m // self.lanes, args)
+        args = scal + o + d + outs + no_ckpt + self.skip_args + lattice
+        self._run(self.trace_kernel, m // self.lanes, args)
         return cols, status, steps
 
     def _retrace(self, o, d, rays, cols, status, steps) -> None:
@@ -482,8 +482,8 @@ class Tracer:
 
     def propagate(self, x: np.ndarray, v: np.ndarray, n_steps: int):
         """Advance states (x, v) by n_steps integrator steps, ignoring the box."""
-        xs, n = self._padded_columns(self._local(x, "positions"), "positions")
-        vs, _ = self._padded_columns(v, "velocities")
+        xs, n = self.padded_columns(self._local(x, "positions"), "positions")
+        vs, _ = self.padded_columns(v, "velocities")
         args = [self.dtype(self.step), np.int32(n_steps)] + [InOut(a) for a in xs + vs]
         self._run(self._k_propagate, len(xs[0]) // self.lanes, args)
         return (
@@ -493,7 +493,7 @@ class Tracer:
 
     def eval_field(self, pts: np.ndarray):
         """eta (n,) and grad eta (n, 3) computed by the device kernel."""
-        xs, n = self._padded_columns(self._local(pts, "points"), "points")
+        xs, n = self.padded_columns(self._local(pts, "points"), "points")
         m = len(xs[0])
         outs = [np.empty(m, self.dtype) for _ in range(4)]
         self._run(self._k_eval, m // self.lanes, xs + [Out(a) for a in outs])

@@ -61,9 +61,9 @@ def test_programs_are_built_once_and_kernels_reused():
     a = Tracer(Sphere(), settings=TraceSettings(step=0.5), runtime=rt)
     # same build, other parameters
     b = Tracer(Sphere(radius=10.0), settings=TraceSettings(step=0.25), runtime=rt)
-    assert a._k_trace is b._k_trace
+    assert a.trace_kernel is b.trace_kernel
     c = Tracer(Sphere(), settings=TraceSettings(step=0.5, integrator="euler"), runtime=rt)
-    assert c._k_trace is not a._k_trace
+    assert c.trace_kernel is not a.trace_kernel
 
 
 def test_bad_ray_arrays_are_refused():

@@ -145,6 +145,22 @@ def test_no_private_name_of_the_fit_is_reached_from_another_module():
     assert not bad, "the fit's private names reached from outside:\n" + "\n".join(bad)
 
 
+def test_the_library_reaches_no_private_attribute_but_its_own():
+    """Within clrefract/, a private attribute is read only on `self` or `cls`: no module
+    reaches into another object's private state (argparse's formatter classes aside, which
+    a help formatter must name)."""
+    bad = [
+        f"{path.relative_to(ROOT)}:{node.lineno}: {ast.unparse(node)}"
+        for path in sources("clrefract").values()
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.Attribute)
+        and private(node.attr)
+        and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls", "argparse"))
+        and not (isinstance(node.value, ast.Call) and ast.unparse(node.value.func) == "super")
+    ]
+    assert not bad, "private attributes reached from outside:\n" + "\n".join(bad)
+
+
 def test_every_package_is_in_the_wheel():
     """A plain (non-editable) install holds only the packages pyproject.toml lists: a package
     left out imports from a checkout but not from a user's site-packages."""

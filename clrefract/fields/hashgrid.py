@@ -550,7 +550,7 @@ class HashGridField(Field):
         return eta, grad
 
     # --- backward pass and regulariser (float64 references) -----------------------------
-    def _forward2(self, pts, mu, params, hessian=True):
+    def forward2(self, pts, mu, params, hessian=True):
         """Second-order forward mode at points (n, 3) along mu (n, 3): o, grad o and
         Hess(o) mu (mu is only needed with `hessian`; zero without), with what the reverse
         pass needs (`tape`: every layer's input and its gradient, whatever mu the reverse
@@ -593,9 +593,9 @@ class HashGridField(Field):
         oh = (ah @ wo[0]).T if hessian else np.zeros((n, 3))
         return a @ wo[0] + bo[0], (ag @ wo[0]).T, oh, (corners, tape)
 
-    def _reverse2(self, ob, omb, mu, tape, params) -> np.ndarray:
+    def reverse2(self, ob, omb, mu, tape, params) -> np.ndarray:
         """sum_n ob_n do/dtheta + omb_n do_mu/dtheta (o_mu = mu_n . grad o) over the points
-        of a _forward2 tape: reverse mode through the (value, mu-tangent) pairs."""
+        of a forward2 tape: reverse mode through the (value, mu-tangent) pairs."""
         c = self.config
         corners, acts = tape
         grad = np.zeros(c.n_params)
@@ -642,7 +642,7 @@ class HashGridField(Field):
         pts = np.asarray(pts, np.float64).reshape(-1, 3)
         mu = np.asarray(mu, np.float64).reshape(-1, 3)
         w = np.ones(len(pts)) if w is None else np.asarray(w, np.float64)
-        o, og, oh, tape = self._forward2(pts, mu, p)
+        o, og, oh, tape = self.forward2(pts, mu, p)
         g0, g1, g2 = self._output(o)  # G(o) = g - 1, and its derivatives G', G''
         win, gw, hw = _window_hessian(self.box, pts)
         eta = 1 + win * g0
@@ -658,7 +658,7 @@ class HashGridField(Field):
         me = np.einsum("nd,nd->n", mu, ge)
         ob = w * (me * win * g1 + eta * (mw * g1 + win * g2 * om))
         omb = w * eta * win * g1
-        return eta, ge, hm, self._reverse2(ob, omb, mu, tape, p)
+        return eta, ge, hm, self.reverse2(ob, omb, mu, tape, p)
 
     def _distil(
         self,
@@ -836,7 +836,7 @@ class HashGridField(Field):
         lattice, fixed seed) do not change between calls: a resumed fit repeats exactly."""
         p = np.asarray(params, np.float64)
         pts = self._regularizer_points()
-        o, og, _, tape = self._forward2(pts, None, p, hessian=False)
+        o, og, _, tape = self.forward2(pts, None, p, hessian=False)
         g0, g1, g2 = self._output(o)
         win, gw, _ = _window_hessian(self.box, pts)
         ge = g0[:, None] * gw + (win * g1)[:, None] * og
@@ -846,7 +846,7 @@ class HashGridField(Field):
         mw = np.einsum("nd,nd->n", ge, gw)
         ob = 2 * scale * (mw * g1 + win * g2 * om)
         omb = 2 * scale * win * g1
-        return float(scale * (ge * ge).sum()), self._reverse2(ob, omb, ge, tape, p)
+        return float(scale * (ge * ge).sum()), self.reverse2(ob, omb, ge, tape, p)
 
     def _regularizer_points(self) -> np.ndarray:
         if getattr(self, "_reg_pts", None) is None:

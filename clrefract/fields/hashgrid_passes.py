@@ -71,7 +71,7 @@ class HostPasses:
     def forward(self, params: np.ndarray, pts: np.ndarray):
         f = self.field
         xs = np.array_split(pts, self.pieces)
-        fw = list(self.pool.map(lambda x: f._forward2(x, None, params, False), xs))
+        fw = list(self.pool.map(lambda x: f.forward2(x, None, params, False), xs))
         self._tapes, self._params = [r[3] for r in fw], params
         return np.concatenate([r[0] for r in fw]), np.concatenate([r[1] for r in fw])
 
@@ -79,7 +79,7 @@ class HostPasses:
         # the same cuts as the points': array_split cuts equal lengths alike
         cut = [np.array_split(x, self.pieces) for x in (ob, omb, mu)]
         p, f = self._params, self.field
-        return sum(self.pool.map(lambda *a: f._reverse2(*a, p), *cut, self._tapes))
+        return sum(self.pool.map(lambda *a: f.reverse2(*a, p), *cut, self._tapes))
 
 
 class DevicePasses:
@@ -120,7 +120,7 @@ class DevicePasses:
             prg,
             precision,
             "the hash grid's MLP output (distillation)",
-            lambda: (self.forward(p, pts)[0], field._forward2(pts, None, p, False)[0]),
+            lambda: (self.forward(p, pts)[0], field.forward2(pts, None, p, False)[0]),
         )
 
     def __enter__(self):
