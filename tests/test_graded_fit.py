@@ -18,14 +18,16 @@ def blobs_30x32(tmp_path_factory):
 
 
 def test_a_voxel_fit_of_a_blob_cluster_descends_at_the_defaults(blobs_30x32, tmp_path):
-    """60 steps of the voxel grid's defaults (smoothed descent from the hull, rays from the
-    masks) take the held-out loss below 0.8 of the start's; Adam at its rate of 5e-3 kept
-    this start (0.94 of it at best), as it did on every graded development scene."""
+    """100 steps of the voxel grid's defaults (smoothed descent from the hull, rays from the
+    masks) take the held-out loss below 0.8 of the start's (measured 0.64 to 0.66 and +2.4 dB
+    over three runs; at 60 steps 0.68 to 0.76, too near the bound for runs that differ by
+    their float atomics); Adam at its rate of 5e-3 kept this start (0.94 of it at best), as
+    it did on every graded development scene."""
     from clrefract.cli import main
 
     run = tmp_path / "run"
     args = ["fit", str(blobs_30x32), "--out", str(run), "--field-kind", "voxel"]
-    args += ["--grid-res", "16", "--iterations", "60", "--val-views", "4", "-q"]
+    args += ["--grid-res", "16", "--iterations", "100", "--val-views", "4", "-q"]
     assert main(args) == 0
     result = json.loads((run / "results.json").read_text())
     assert result["best_iteration"] > 0, result
@@ -38,8 +40,9 @@ def test_a_voxel_fit_of_a_blob_cluster_descends_at_the_defaults(blobs_30x32, tmp
 def test_a_faint_medium_gets_a_rate_of_its_own(tmp_path):
     """A gas-like blob (index 1.003): the descent's rate comes down from the default 5e-3
     (a step of which overshoots its whole index) at the first step and wherever the held-out
-    loss rises, is kept in config.toml, and the held-out loss falls below 0.8 of the
-    start's."""
+    loss rises, is kept in config.toml, and over 120 steps the held-out loss falls below 0.8
+    of the start's (measured 0.35 to 0.48 over three runs: the adjoint's float atomics make
+    runs differ, and at 60 steps they ended anywhere from 0.62 to 0.82)."""
     from clrefract.cli import main
     from clrefract.fields.analytic import Blobs
     from clrefract.fit import load_config
@@ -50,7 +53,7 @@ def test_a_faint_medium_gets_a_rate_of_its_own(tmp_path):
     make_dataset("gas", data, MakeOptions(views=30, res=32), obj=gas)
     run = tmp_path / "run"
     args = ["fit", str(data), "--out", str(run), "--field-kind", "voxel"]
-    args += ["--grid-res", "16", "--iterations", "60", "--val-views", "4", "-q"]
+    args += ["--grid-res", "16", "--iterations", "120", "--val-views", "4", "-q"]
     assert main(args) == 0
     rate = load_config(run / "config.toml", {}).lr
     assert rate <= 5e-3 / 4, rate
