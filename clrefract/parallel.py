@@ -106,12 +106,15 @@ def world() -> Ranks:
 
 
 def _share_cpu(ranks: Ranks) -> None:
-    """Ranks on one machine that run on its CPU (PoCL) split its cores between them rather
-    than each starting a thread per core, as do their hash-grid distillations' threads.
-    Must run before OpenCL starts; the user's own settings win."""
-    if ranks.local_size <= 1:
-        return
-    cores = max(1, host_cores() // ranks.local_size)
+    if ranks.local_size > 1:
+        share_cores(ranks.local_size)
+
+
+def share_cores(processes: int) -> None:
+    """Processes on one machine that run on its CPU (PoCL: MPI ranks, test workers) split its
+    cores between them rather than each starting a thread per core, as do their hash-grid
+    distillations' threads. Must run before OpenCL starts; the user's own settings win."""
+    cores = max(1, host_cores() // max(1, processes))
     for var in ("POCL_CPU_MAX_CU_NUM", "POCL_MAX_PTHREAD_COUNT", "CLREFRACT_HOST_THREADS"):
         os.environ.setdefault(var, str(cores))
 

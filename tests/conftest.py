@@ -6,9 +6,15 @@ as it ends, that the folder holds the same files with the same bytes as when it 
 from __future__ import annotations
 
 import hashlib
+import os
 from pathlib import Path
 
 import pytest
+
+from clrefract.parallel import share_cores
+
+# pytest-xdist's workers split the cores rather than each PoCL starting a thread per core
+share_cores(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
 
 
 def folder_digest(root: Path) -> str:

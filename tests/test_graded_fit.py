@@ -39,10 +39,11 @@ def test_a_voxel_fit_of_a_blob_cluster_descends_at_the_defaults(blobs_30x32, tmp
 
 def test_a_faint_medium_gets_a_rate_of_its_own(tmp_path):
     """A gas-like blob (index 1.003): the descent's rate comes down from the default 5e-3
-    (a step of which overshoots its whole index) at the first step and wherever the held-out
-    loss rises, is kept in config.toml, and over 120 steps the held-out loss falls below 0.8
-    of the start's (measured 0.35 to 0.48 over three runs: the adjoint's float atomics make
-    runs differ, and at 60 steps they ended anywhere from 0.62 to 0.82)."""
+    (a step of which overshoots its whole index) to a quarter of its first step's best
+    length, is kept in config.toml, and 60 steps take the held-out loss below 0.4 of the
+    start's and the test views up 1.5 dB (measured 0.183 and +2.81 dB in six runs on two
+    PoCLs; with the best length itself, runs that differed only in the order the adjoint's
+    float atomics add in ended anywhere from 0.24 to 0.82, and at -2 to +1 dB)."""
     from clrefract.cli import main
     from clrefract.fields.analytic import Blobs
     from clrefract.fit import load_config
@@ -53,9 +54,10 @@ def test_a_faint_medium_gets_a_rate_of_its_own(tmp_path):
     make_dataset("gas", data, MakeOptions(views=30, res=32), obj=gas)
     run = tmp_path / "run"
     args = ["fit", str(data), "--out", str(run), "--field-kind", "voxel"]
-    args += ["--grid-res", "16", "--iterations", "120", "--val-views", "4", "-q"]
+    args += ["--grid-res", "16", "--iterations", "60", "--val-views", "4", "-q"]
     assert main(args) == 0
     rate = load_config(run / "config.toml", {}).lr
-    assert rate <= 5e-3 / 4, rate
+    assert rate <= 5e-3 / 16, rate
     result = json.loads((run / "results.json").read_text())
-    assert result["best_val_over_start"] < 0.8, result
+    assert result["best_val_over_start"] < 0.4, result
+    assert result["test_psnr"] > result["start"]["test_psnr"] + 1.5, result
