@@ -101,13 +101,9 @@ def world() -> Ranks:
     comm = MPI.COMM_WORLD
     local = comm.Split_type(MPI.COMM_TYPE_SHARED)  # the ranks that share this machine
     _WORLD = Ranks(comm.rank, comm.size, local.rank, local.size, comm)
-    _share_cpu(_WORLD)
+    if _WORLD.local_size > 1:
+        share_cores(_WORLD.local_size)
     return _WORLD
-
-
-def _share_cpu(ranks: Ranks) -> None:
-    if ranks.local_size > 1:
-        share_cores(ranks.local_size)
 
 
 def share_cores(processes: int) -> None:

@@ -14,7 +14,8 @@ import pytest
 from clrefract.parallel import share_cores
 
 # pytest-xdist's workers split the cores rather than each PoCL starting a thread per core
-share_cores(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+if "PYTEST_XDIST_WORKER_COUNT" in os.environ:
+    share_cores(int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))
 
 
 def folder_digest(root: Path) -> str:
