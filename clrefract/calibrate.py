@@ -325,7 +325,8 @@ def split_gain(gain) -> tuple[float, list[float]]:
     return exposure, (gain / exposure).tolist()
 
 
-def _read_json(path: Path) -> dict:
+def read_json(path: Path) -> dict:
+    """A JSON object from a file; ClrefractError naming it if unreadable or not an object."""
     try:
         d = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -335,7 +336,8 @@ def _read_json(path: Path) -> dict:
     return d
 
 
-def _write_json(path: Path, d: dict) -> None:
+def write_json(path: Path, d: dict) -> None:
+    """Write a JSON object whole or not at all (indented, as the transforms files are)."""
     with atomic_path(path, suffix=".json") as tmp:
         tmp.write_text(json.dumps(d, indent=2) + "\n", encoding="utf-8")
 
@@ -429,7 +431,7 @@ def calibrate(
     info["written"] = []
     if write:
         turned = {v.source for v, t in zip(views, turns) if t is not None}
-        edits = {path: _read_json(path) for path in {*updates, *turned}}
+        edits = {path: read_json(path) for path in {*updates, *turned}}
         for v, t in zip(views, turns):
             if t is not None:
                 fr = edits[v.source]["frames"][v.index]
@@ -442,14 +444,14 @@ def calibrate(
                 fr["exposure_scale"] = round(e, 6)
                 fr["white_balance"] = [round(x, 6) for x in wb]
         scene_path = ds.root / SCENE_FILE
-        scene = _read_json(scene_path) if scene_path.is_file() else {}
+        scene = read_json(scene_path) if scene_path.is_file() else {}
         if not keep_rotation:
             scene["envmap_rotation"] = angles.tolist()
         for path, d in edits.items():
-            _write_json(path, d)
+            write_json(path, d)
             info["written"].append(str(path))
         if not keep_rotation:
-            _write_json(scene_path, scene)
+            write_json(scene_path, scene)
             info["written"].append(str(scene_path))
     logger.info(
         f"{ds.root}: panorama rotation {np.round(angles, 4).tolist()} degrees, RMS log "

@@ -445,6 +445,14 @@ def _cmd_dataset_register_env(args) -> int:
     return 0
 
 
+def _cmd_dataset_refine_positions(args) -> int:
+    from .camera_positions import refine_positions
+
+    info = refine_positions(Path(args.dataset), Path(args.run), write=args.write)
+    print(json.dumps(info, indent=2))
+    return 0
+
+
 def _config_names_field(path) -> bool:
     from .fit.config import read_toml
 
@@ -971,6 +979,23 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         "it are used, so a tight one gives more",
     )
     p.set_defaults(func=_cmd_dataset_register_env)
+    p = ds.add_parser(
+        "refine-positions",
+        help="move each training camera's centre (in its image plane) to where a fitted run's "
+        "field renders its photograph best; test views keep their recorded positions, so "
+        "their scores stay honest",
+    )
+    p.add_argument("dataset", help="dataset folder")
+    p.add_argument(
+        "--run", required=True, help="run folder of a fit of this dataset (its field.npz)"
+    )
+    p.add_argument(
+        "--write",
+        action="store_true",
+        help="move the cameras in the training transforms file, keeping every other key "
+        "(then fit again)",
+    )
+    p.set_defaults(func=_cmd_dataset_refine_positions)
 
     p = sub.add_parser(
         "fit",

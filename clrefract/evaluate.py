@@ -63,7 +63,7 @@ class EtaModel:
         return eta_surface(self.field, box, self.level, eval_fn=self.tracer.eval_field)
 
 
-def _config(run: Path, notes: list[str]):
+def run_config(run: Path, notes: list[str]):
     """The run's configuration; the defaults (with a note) where an older or damaged
     config.toml cannot be read: only the step and precision matter for scoring."""
     from .fit import FitConfig, load_config
@@ -125,7 +125,7 @@ def load_model(run: Path, ds, notes: list[str], runtime=None, cfg=None):
     box = Box.from_dict(meta["box"]) if "box" in meta else ds.box
     field = load_field_file(run / "field.npz", box)
     eta_hi = float(ds.scene.eta_range[1])
-    cfg = cfg or _config(run, notes)
+    cfg = cfg or run_config(run, notes)
     return EtaModel(field, box, cfg, eta_hi, runtime=runtime)
 
 
@@ -245,7 +245,7 @@ def evaluate_run(
     run = Path(run)
     check_run(run)
     notes: list[str] = []
-    cfg = None if (run / "straight.npz").is_file() else _config(run, notes)
+    cfg = None if (run / "straight.npz").is_file() else run_config(run, notes)
     box = box_of(cfg.box) if cfg is not None and cfg.box else None  # the fit's --box
     ds = Dataset(dataset_of(run, dataset), box=box)
     model = load_model(run, ds, notes, runtime=runtime, cfg=cfg)
