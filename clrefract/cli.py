@@ -575,6 +575,8 @@ def _cmd_table_run(args) -> int:
     whole = shards.parse(args.shard)[1] == 1
     if args.page and not whole:
         raise ClrefractError("--page needs the whole protocol: give it to `table merge`")
+    if args.readme and not args.page:
+        raise ClrefractError("--readme needs --page: the results at a glance summarise the page")
     records = run_protocol(
         args.protocol,
         out,
@@ -582,11 +584,12 @@ def _cmd_table_run(args) -> int:
         scenes=_names(args.scenes),
         methods=_names(args.methods),
         data_root=Path(args.data) if args.data else None,
+        family_methods=_names(args.family_methods),
     )
     if whole and records:
         write_table(records, out)
         if args.page:
-            write_page(records, args.page)
+            write_page(records, args.page, args.readme)
         print((out / "table.md").read_text(), end="")
     return 0
 
@@ -594,11 +597,13 @@ def _cmd_table_run(args) -> int:
 def _cmd_table_merge(args) -> int:
     from .table import merge, write_page, write_table
 
+    if args.readme and not args.page:
+        raise ClrefractError("--readme needs --page: the results at a glance summarise the page")
     out = Path(args.out)
     records = merge([Path(f) for f in args.folders])
     write_table(records, out)
     if args.page:
-        write_page(records, args.page)
+        write_page(records, args.page, args.readme)
     print((out / "table.md").read_text(), end="")
     return 0
 
@@ -606,8 +611,9 @@ def _cmd_table_merge(args) -> int:
 def _cmd_table_page(args) -> int:
     from .table import read_records, write_page
 
-    write_page(read_records(args.records), args.out)
-    print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
+    write_page(read_records(args.records), args.out, args.readme)
+    also = f" and the results at a glance in {args.readme}" if args.readme else ""
+    print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}{also}")
     return 0
 
 
@@ -748,6 +754,12 @@ def _joined_box(argv: list[str]) -> list[str]:
 PAGE_HELP = (
     "also write the results page (markdown: how, where and when it was measured, then one "
     "table per figure; e.g. docs/results.md) and its records beside it (PAGE with .json)"
+)
+
+
+README_HELP = (
+    "with --page: also write the results at a glance into this README, between its "
+    "results-at-a-glance comment lines (e.g. README.md)"
 )
 
 
@@ -1047,17 +1059,26 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         default="grid,meridian,synapse,vertexnet,interface",
         help="comma-separated methods",
     )
+    p.add_argument(
+        "--family-methods",
+        default="",
+        help="comma-separated methods also run on each solid of the family (the development "
+        "set: rounded-cube, cylinder, bowl, two-bodies, vase, random), e.g. interface",
+    )
     p.add_argument("--data", help="dataset folder root (default OUT/data)")
     p.add_argument("--page", help=PAGE_HELP + " (the whole protocol only: no --shard)")
+    p.add_argument("--readme", help=README_HELP)
     p.set_defaults(func=_cmd_table_run)
     p = tab.add_parser("merge", help="join shard records into the table")
     p.add_argument("folders", nargs="+", help="folders holding shard-*-of-*.json")
     p.add_argument("--out", required=True, help="folder for the table")
     p.add_argument("--page", help=PAGE_HELP)
+    p.add_argument("--readme", help=README_HELP)
     p.set_defaults(func=_cmd_table_merge)
     p = tab.add_parser("page", help="write the results page from saved records, running nothing")
     p.add_argument("records", help="a table's records: OUT/table.json, or a page's .json")
     p.add_argument("--out", required=True, help="the page, e.g. docs/results.md")
+    p.add_argument("--readme", help=README_HELP)
     p.set_defaults(func=_cmd_table_page)
 
     from .tradeoff import SCENES

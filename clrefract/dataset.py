@@ -21,7 +21,7 @@ from .cameras import IMAGE_SUFFIXES, Camera, frame_stem, load_transforms
 from .envmap import EnvMap, rotation_matrix
 from .errors import ClrefractError
 from .fields.base import Box
-from .imageio import atomic_path, read_frame_rgba
+from .imageio import atomic_path, chroma_halved, read_frame_rgba
 from .limits import check_training_rays
 
 SCENE_FILE = "scene.json"
@@ -463,6 +463,10 @@ class Dataset:
 
     def image(self, cam: Camera) -> np.ndarray:
         return self.frame(cam)[0]
+
+    def chroma_halved(self) -> bool:
+        """Whether every training frame is a JPEG with 4:2:0 chroma (the srgb420 loss's)."""
+        return all(chroma_halved(self.frame_path(cam)) for cam in self.train)
 
     def _index(self, cam: Camera) -> int:
         """The frame's place in its split (names the masks of frames without a file)."""

@@ -203,6 +203,18 @@ def read_pillow(path: PathLike, what: str, kind: str) -> np.ndarray:
         raise ClrefractError(f"{path}: not a readable {kind}") from None
 
 
+def chroma_halved(path: PathLike) -> bool:
+    """Whether a file is a JPEG whose chroma is stored at half the resolution both ways
+    (4:2:0, Pillow's default and most cameras'); read from its header alone."""
+    from PIL import Image, JpegImagePlugin
+
+    try:
+        with Image.open(path) as im:
+            return im.format == "JPEG" and JpegImagePlugin.get_sampling(im) == 2
+    except (OSError, ValueError):
+        return False
+
+
 def read_photo_rgb(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Linear RGB (H, W, 3) float32 of an sRGB PNG or JPEG (8 or 16 bits, grey or colour,
     alpha ignored), and the (H, W) bool map of pixels clipped in some channel."""

@@ -50,6 +50,11 @@ def envmap_lookup_jacobian(env: EnvMap, directions: np.ndarray):
     return rad, jac
 
 
+# JPEG's YCbCr (ITU-R BT.601, full range) of sRGB-encoded RGB: rows Y, Cb, Cr
+YCC = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
+SPACES = ("srgb", "srgb420", "linear")
+
+
 def srgb(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """sRGB encoding of linear values clipped to [0, 1], and its derivative (float64)."""
     c = np.clip(x, 0.0, 1.0)
@@ -74,7 +79,10 @@ def photometric_loss(
     velocity: exit v (n, 3), not necessarily unit; target: (n, 3) linear radiance;
     weight: (n,) 0/1 mask of rays that count (rays that missed the box get 0);
     space: "srgb" compares sRGB-encoded values clipped to [0, 1], as the test metrics do
-    (bright lamps then do not dominate), "linear" compares radiance;
+    (bright lamps then do not dominate), "linear" compares radiance; "srgb420" compares the
+    sRGB values' luma per ray and their chroma by the mean of each run of 4 rays (an aligned
+    2 x 2 pixel block): all that a JPEG with 4:2:0 chroma subsampling keeps of the colours,
+    so the decoder's smeared chroma at the object's edges is not fitted as refraction;
     dark: (n,) rays that render black (trapped or non-finite), as the renderer draws them:
     radiance 0 and no adjoint. Were they left out, trapping a badly rendered ray would
     lower the loss.
@@ -92,14 +100,14 @@ def photometric_loss(
     if dark is not None:
         rad, jac = np.where(dark[:, None], 0.0, rad), np.where(dark[:, None, None], 0.0, jac)
     wgt = np.ones(len(v)) if weight is None else np.asarray(weight, np.float64)
-    if space == "srgb":
+    if space in ("srgb", "srgb420"):
         enc, denc = srgb(rad)
         resid = (enc - srgb(np.asarray(target, np.float64))[0]) * wgt[:, None]
         jac = denc[:, :, None] * jac
     elif space == "linear":
         resid = (rad - target) * wgt[:, None]
     else:
-        raise ValueError(f"loss space must be 'srgb' or 'linear', got {space!r}")
+        raise ValueError(f"loss space must be one of {', '.join(SPACES)}, got {space!r}")
     if group > 1:
         if len(resid) % group:
             raise ValueError(f"{len(resid)} rays do not split into groups of {group}")
@@ -107,6 +115,14 @@ def photometric_loss(
         n = max(mean.size, 1)
         loss = float((mean**2).sum() / n)
         dres = np.repeat(2 * mean / (n * group), group, axis=0) * wgt[:, None]
+    elif space == "srgb420":
+        if len(resid) % 4:
+            raise ValueError(f"{len(resid)} rays do not split into 2 x 2 blocks")
+        ycc = resid @ YCC.T
+        ycc[:, 1:] = np.repeat(ycc[:, 1:].reshape(-1, 4, 2).mean(axis=1), 4, axis=0)
+        n = max(resid.size, 1)
+        loss = float((ycc**2).sum() / n)  # a block's chroma counts once per pixel
+        dres = (2 * ycc / n) @ YCC * wgt[:, None]
     else:
         n = max(resid.size, 1)
         loss = float((resid**2).sum() / n)

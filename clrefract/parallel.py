@@ -190,7 +190,10 @@ class ShardedEngine:
         n, c = len(origins), self.chunks
         if group > 1 and (n // group) % c:
             raise ValueError(f"{n // group} ray groups do not split into {c} chunks")
-        edges = np.arange(c + 1) * n // c  # fixed by the batch alone, not by the ranks
+        # fixed by the batch alone, not by the ranks; whole blocks of the srgb420 loss
+        unit = 4 if group == 1 and self.engine.loss_space == "srgb420" else 1
+        edges = np.arange(c + 1) * (n // unit) // c * unit
+        edges[-1] = n
         n_par = len(self.engine.field.data())
         weights = np.ones(n) if weights is None else np.asarray(weights)
         leaves, rays = {}, []

@@ -25,6 +25,7 @@ from pathlib import Path
 from . import shards
 from .baselines.methods import METHODS, run_method
 from .errors import ClrefractError
+from .family import FAMILY
 
 SCENES = ("sphere", "prism", "drop")
 
@@ -97,9 +98,12 @@ PROTOCOLS: dict[str, dict] = {
 }
 
 
-def jobs(scenes, methods, shard: str = "") -> list[tuple[str, str]]:
-    """The (scene, method) runs of a shard ('i/n', as shards.parse reads it)."""
-    return shards.select([(s, m) for s in scenes for m in methods], shard)
+def jobs(scenes, methods, shard: str = "", family_methods=()) -> list[tuple[str, str]]:
+    """The (scene, method) runs of a shard ('i/n', as shards.parse reads it): every method on
+    every scene, then the family methods on each solid of the family (the development set)."""
+    every = [(s, m) for s in scenes for m in methods]
+    every += [(s, m) for s in FAMILY for m in family_methods if (s, m) not in every]
+    return shards.select(every, shard)
 
 
 def dataset_for(protocol: str, scene: str, data_root: Path) -> Path:
@@ -186,10 +190,11 @@ def run_protocol(
     methods=tuple(METHODS),
     data_root: Path | None = None,
     stream=None,
+    family_methods=(),
 ) -> list[dict]:
     if protocol not in PROTOCOLS:
         raise ClrefractError(f"unknown protocol {protocol!r}; protocols: {', '.join(PROTOCOLS)}")
-    bad = [m for m in methods if m not in METHODS]
+    bad = [m for m in (*methods, *family_methods) if m not in METHODS]
     if bad:
         raise ClrefractError(f"unknown method(s) {bad}; methods: {', '.join(METHODS)}")
     out.mkdir(parents=True, exist_ok=True)
@@ -197,7 +202,7 @@ def run_protocol(
     records = []
     i, n = shards.parse(shard)
     path = out / f"shard-{i}-of-{n}.json"
-    for scene, method in jobs(scenes, methods, shard):
+    for scene, method in jobs(scenes, methods, shard, family_methods):
         print(f"table: {protocol} {scene} {method}", file=stream or sys.stderr)
         records.append(run_job(protocol, scene, method, out, data_root, stream))
         path.write_text(json.dumps(records, indent=2))  # after each run: a stop loses one
@@ -313,16 +318,30 @@ def _ordered(records, key, order) -> list[str]:
     return [x for x in order if x in have] + sorted(have - set(order))
 
 
-def page_command(records: list[dict], page: str | Path) -> str:
+def _split(records) -> tuple[list[dict], list[dict]]:
+    """Table 1's records, and those of the family's solids where they are the whole family
+    under each of their methods (what `--family-methods` runs); else every record is Table 1's."""
+    family = [r for r in records if r["scene"] in FAMILY]
+    methods = {r["method"] for r in family}
+    if {(r["scene"], r["method"]) for r in family} != {(s, m) for s in FAMILY for m in methods}:
+        return records, []
+    return [r for r in records if r["scene"] not in FAMILY], family
+
+
+def page_command(records: list[dict], page: str | Path, readme: str | Path | None = None) -> str:
     """The command line that measures the records' table again and writes the page."""
     protocol = records[0]["protocol"]
     cmd = ["clrefract", "table", "run", "--protocol", protocol, "--out", f"table/{protocol}"]
-    scenes, methods = _ordered(records, "scene", SCENES), _ordered(records, "method", METHODS)
+    table1, family = _split(records)
+    scenes, methods = _ordered(table1, "scene", SCENES), _ordered(table1, "method", METHODS)
     if scenes != list(SCENES):
         cmd += ["--scenes", ",".join(scenes)]
     if methods != list(METHODS):
         cmd += ["--methods", ",".join(methods)]
-    return shlex.join([*cmd, "--page", str(page)])
+    if family:
+        cmd += ["--family-methods", ",".join(_ordered(family, "method", METHODS))]
+    cmd += ["--page", str(page)]
+    return shlex.join(cmd + (["--readme", str(readme)] if readme else []))
 
 
 def _distinct(values, none="unknown (runs that predate the record)") -> str:
@@ -334,14 +353,55 @@ def _settings(d: dict) -> str:
     return ", ".join(f"{k}={v}" for k, v in d.items()) or "its defaults"
 
 
-def page(records: list[dict], path: str | Path) -> str:
+def _figure_table(records, key, digits, paper_key) -> list[str]:
+    """One figure of Table 1: a row per method, a column per scene, their mean, the paper's."""
+    scenes, methods = _ordered(records, "scene", SCENES), _ordered(records, "method", METHODS)
+    cell = {(r["scene"], r["method"]): r for r in records}
+    head = ["Method", *scenes, "mean", *(["paper"] if paper_key else [])]
+    lines = ["| " + " | ".join(head) + " |", "|---" + "|---:" * (len(head) - 1) + "|"]
+    for m in methods:
+        rows = [cell[s, m] for s in scenes if (s, m) in cell]
+        mean = "n/a" if all(r[key] == "n/a" for r in rows) else _mean(rows, key)
+        if len(rows) < len(scenes):
+            mean = None
+        row = [f"{rows[0]['paper_name']} (`{m}`)"]
+        row += [_f(cell[s, m][key] if (s, m) in cell else None, digits) for s in scenes]
+        row.append(_f(mean, digits))
+        if paper_key:
+            paper = rows[0][paper_key]
+            row.append("" if _num(paper) is None else _f(paper, digits))
+        lines.append("| " + " | ".join(row) + " |")
+    return lines
+
+
+FAMILY_FIGURES = FIGURES[:-1] + (("wall_seconds", "wall time (s)", 0, None),)
+
+
+def _family_table(records) -> list[str]:
+    """The family's solids, a row per (solid, method), then each method's mean."""
+    head = ["Solid", "Method", "PSNR (dB)", "SSIM", "D_C (mm)", "eta RMSE", "wall time (s)"]
+    lines = ["| " + " | ".join(head) + " |", "|---|---" + "|---:" * (len(head) - 2) + "|"]
+    for m in _ordered(records, "method", METHODS):
+        rows = [r for r in records if r["method"] == m]
+        for r in [*sorted(rows, key=lambda r: FAMILY.index(r["scene"])), None]:
+            name = "mean" if r is None else r["scene"]
+            figures = [_mean(rows, k) if r is None else r[k] for k, *_ in FAMILY_FIGURES]
+            cells = [_f(v, d) for v, (_, _, d, _) in zip(figures, FAMILY_FIGURES)]
+            lines.append(f"| {name} | `{m}` | " + " | ".join(cells) + " |")
+    return lines
+
+
+def page(records: list[dict], path: str | Path, readme: str | Path | None = None) -> str:
     """The results page of one protocol's records; `path` is where it is written (the commands
-    it shows name it, and its records beside it, PATH with .json)."""
+    it shows name it, and its records beside it, PATH with .json), `readme` the README whose
+    results at a glance the command writes too."""
     protocols = sorted({r["protocol"] for r in records})
     if len(protocols) != 1:
         raise ClrefractError(f"records of protocols {', '.join(protocols)}: a page shows one")
     (protocol,) = protocols
-    scenes, methods = _ordered(records, "scene", SCENES), _ordered(records, "method", METHODS)
+    table1, family = _split(records)
+    scenes, methods = _ordered(table1, "scene", SCENES), _ordered(table1, "method", METHODS)
+    family_methods = _ordered(family, "method", METHODS)
     spec = PROTOCOLS.get(protocol, {"data": {}, "methods": {}})
     saved = Path(path).with_suffix(".json")
     ended = sorted(r["ended"][:16].replace("T", " ") for r in records if r.get("ended"))
@@ -369,17 +429,30 @@ def page(records: list[dict], path: str | Path) -> str:
             f"scores mean nothing.** The quick protocol's page ({QUICK_TIME}):",
             "",
             "```bash",
-            page_command([{**r, "protocol": "quick"} for r in records], path),
+            page_command([{**r, "protocol": "quick"} for r in records], path, readme),
             "```",
             "",
         ]
+    runs = f"- Runs: {len(records)}"
+    if table1:
+        runs += (
+            f"; {len(methods)} methods ({', '.join(methods)}) on {len(scenes)} scenes "
+            f"({', '.join(scenes)})"
+        )
+    if family:
+        runs += (
+            f"; {', '.join(family_methods)} on the family of {len(FAMILY)} glass solids "
+            f"({', '.join(FAMILY)}), the development set"
+        )
     lines += [
-        f"- Runs: {len(records)}, {len(methods)} methods ({', '.join(methods)}) on "
-        f"{len(scenes)} scenes ({', '.join(scenes)}).",
+        runs + ".",
         f"- Protocol: `{protocol}` ({PROTOCOL_NOTES.get(protocol, 'not one of this version')}): "
         f"datasets of {_settings(data)}; every fifth view a test view.",
         "- Budgets: "
-        + "; ".join(f"{m} ({_settings(spec['methods'].get(m, {}))})" for m in methods)
+        + "; ".join(
+            f"{m} ({_settings(spec['methods'].get(m, {}))})"
+            for m in _ordered(records, "method", METHODS)
+        )
         + ".",
         f"- Scoring: `clrefract eval` ({_settings(spec.get('eval', {}))}).",
         f"- Measured: runs ended {when or _distinct([])}.",
@@ -395,43 +468,91 @@ def page(records: list[dict], path: str | Path) -> str:
         "Measure again and write this page:",
         "",
         "```bash",
-        page_command(records, path),
+        page_command(records, path, readme),
         "```",
         "",
         "Write this page again from its records, running nothing:",
         "",
         "```bash",
-        shlex.join(["clrefract", "table", "page", str(saved), "--out", str(path)]),
+        shlex.join(
+            ["clrefract", "table", "page", str(saved), "--out", str(path)]
+            + (["--readme", str(readme)] if readme else [])
+        ),
         "```",
     ]
-    cell = {(r["scene"], r["method"]): r for r in records}
-    for key, heading, digits, paper_key in FIGURES:
-        head = ["Method", *scenes, "mean", *(["paper"] if paper_key else [])]
-        lines += ["", f"## {heading}", "", "| " + " | ".join(head) + " |"]
-        lines.append("|---" + "|---:" * (len(head) - 1) + "|")
-        for m in methods:
-            rows = [cell[s, m] for s in scenes if (s, m) in cell]
-            mean = "n/a" if all(r[key] == "n/a" for r in rows) else _mean(rows, key)
-            if len(rows) < len(scenes):
-                mean = None
-            row = [f"{rows[0]['paper_name']} (`{m}`)"]
-            row += [_f(cell[s, m][key] if (s, m) in cell else None, digits) for s in scenes]
-            row.append(_f(mean, digits))
-            if paper_key:
-                paper = rows[0][paper_key]
-                row.append("" if _num(paper) is None else _f(paper, digits))
-            lines.append("| " + " | ".join(row) + " |")
+    if table1:
+        for key, heading, digits, paper_key in FIGURES:
+            lines += ["", f"## {heading}", "", *_figure_table(table1, key, digits, paper_key)]
+    if family:
+        lines += [
+            "",
+            "## The family of glass solids",
+            "",
+            "The development set of `clrefract dataset make` (index 1.5; "
+            "[evaluation.md](evaluation.md)), each method at the protocol's budget.",
+            "",
+            *_family_table(family),
+        ]
     return "\n".join(lines) + "\n"
 
 
-def write_page(records: list[dict], path: str | Path) -> None:
-    """The results page at `path` and its records beside it (PATH with .json)."""
+# README.md's results at a glance: written between these lines by `--readme`.
+GLANCE_BEGIN = "<!-- results at a glance: written by `clrefract table --readme`, not by hand -->"
+GLANCE_END = "<!-- end of the results at a glance -->"
+
+
+def glance(records: list[dict], page_path: str | Path) -> str:
+    """The README's summary of a results page: Table 1's PSNR and the family's."""
+    table1, family = _split(records)
+    ended = sorted(r["ended"][:10] for r in records if r.get("ended"))
+    lines = [
+        f"PSNR (dB) on the held-out views, `{records[0]['protocol']}` protocol"
+        + (f", measured {ended[0]}" if ended else "")
+        + (f" to {ended[-1]}" if ended and ended[-1] != ended[0] else "")
+        + f"; [{Path(page_path).name}]({page_path}) has SSIM, the chamfer distance, eta, "
+        "the wall times and how it was measured.",
+        "",
+    ]
+    if table1:
+        lines += _figure_table(table1, "psnr", 2, "paper_psnr")
+    for m in _ordered(family, "method", METHODS):
+        rows = [r for r in family if r["method"] == m]
+        psnr = [r["psnr"] for r in rows]
+        lines += [
+            "",
+            f"The family of {len(FAMILY)} glass solids (the development set), `{m}`: "
+            f"{_f(_mean(rows, 'psnr'), 2)} dB on average "
+            f"({_f(min(psnr), 2)} to {_f(max(psnr), 2)}).",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def write_glance(readme: str | Path, records: list[dict], page_path: str | Path) -> None:
+    """Replace the results at a glance in `readme` (between GLANCE_BEGIN and GLANCE_END)."""
+    readme = Path(readme)
+    try:
+        text = readme.read_text()
+    except OSError as exc:
+        raise ClrefractError(f"{readme}: cannot read it ({exc.strerror})") from None
+    head, sep, rest = text.partition(GLANCE_BEGIN + "\n")
+    _, sep2, tail = rest.partition(GLANCE_END)
+    if not (sep and sep2):
+        raise ClrefractError(f"{readme}: no lines {GLANCE_BEGIN!r} ... {GLANCE_END!r}")
+    readme.write_text(head + sep + glance(records, page_path) + sep2 + tail)
+
+
+def write_page(records: list[dict], path: str | Path, readme: str | Path | None = None) -> None:
+    """The results page at `path` and its records beside it (PATH with .json); with `readme`,
+    its results at a glance too."""
     path = Path(path)
     if path.suffix == ".json":
         raise ClrefractError(f"{path}: the page is markdown; its records go beside it as .json")
+    if readme:  # first: a README without the markers leaves nothing half written
+        home = Path(readme).parent
+        write_glance(readme, records, path.relative_to(home) if path.is_relative_to(home) else path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.with_suffix(".json").write_text(json.dumps(records, indent=2) + "\n")
-    path.write_text(page(records, path))
+    path.write_text(page(records, path, readme))
 
 
 def read_records(path: str | Path) -> list[dict]:

@@ -98,3 +98,54 @@ def test_block_loss_is_the_error_of_block_means_and_its_gradient_matches_fd():
     assert hits >= 9
     with pytest.raises(ValueError, match="groups of 3"):
         photometric_loss(env, v, target, group=3)
+
+
+def _ycc(rgb):
+    """JFIF's YCbCr of sRGB-encoded values (without the 128 offset), in float64."""
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    y = 0.299 * r + 0.587 * g + 0.114 * b
+    return np.stack([y, (b - y) / 1.772, (r - y) / 1.402], axis=-1)
+
+
+def test_the_420_loss_compares_luma_per_pixel_and_chroma_per_block():
+    """srgb420: the squared error of luma per ray and of the chroma of each run of 4 rays (a
+    2 x 2 block), against JFIF's YCbCr written out here; zero where only the chroma inside a
+    block differs (what 4:2:0 subsampling loses), with dJ/dv matching central differences."""
+    from clrefract.loss import srgb
+
+    env = _env()
+    rng = np.random.default_rng(5)
+    v = rng.normal(size=(200, 3))
+    target = env.lookup(rng.normal(size=(200, 3))).astype(np.float64)
+    weight = (rng.random(200) > 0.1).astype(float)
+    loss, g, rad = photometric_loss(env, v, target, weight=weight, space="srgb420")
+    diff = _ycc(srgb(rad)[0] - srgb(target)[0]) * weight[:, None]
+    chroma = diff[:, 1:].reshape(50, 4, 2).mean(1)
+    want = ((diff[:, 0] ** 2).sum() + 4 * (chroma**2).sum()) / diff.size
+    assert loss == pytest.approx(want, rel=1e-5)  # the matrix's rounding in JFIF: 6 digits
+
+    # the truth's luma, and chroma that differs from it only inside each block (zero mean
+    # over the block): srgb420 sees nothing, srgb does (blocks that clip carry no weight)
+    ycc = _ycc(srgb(rad)[0])
+    spread = rng.normal(size=(50, 4, 2)) * 0.02
+    ycc[:, 1:] += (spread - spread.mean(1, keepdims=True)).reshape(200, 2)
+    y, cb, cr = ycc.T
+    enc = np.stack([y + 1.402 * cr, y - 0.344136 * cb - 0.714136 * cr, y + 1.772 * cb], axis=1)
+    lin = np.where(enc <= 0.04045, enc / 12.92, ((np.clip(enc, 0, 1) + 0.055) / 1.055) ** 2.4)
+    ok = np.all((enc > 0.01) & (enc < 0.99) & (rad > 0) & (rad < 1), axis=1)
+    kept = np.repeat(ok.reshape(50, 4).all(1), 4).astype(float)
+    assert kept.sum() >= 40
+    assert photometric_loss(env, v, lin, weight=kept, space="srgb420")[0] < 1e-14
+    assert photometric_loss(env, v, lin, weight=kept, space="srgb")[0] > 1e-5
+
+    hits = 0
+    for _ in range(10):
+        u = rng.normal(size=v.shape) * 1e-7
+        fd = (
+            photometric_loss(env, v + u, target, weight=weight, space="srgb420")[0]
+            - photometric_loss(env, v - u, target, weight=weight, space="srgb420")[0]
+        )
+        hits += abs(fd / 2 - (g * u).sum()) < 1e-3 * abs((g * u).sum()) + 1e-15
+    assert hits >= 9
+    with pytest.raises(ValueError, match="2 x 2 blocks"):
+        photometric_loss(env, v[:6], target[:6], space="srgb420")

@@ -190,3 +190,31 @@ def test_bad_flaws_are_refused_before_writing(tmp_path, capsys, flaws, words):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0], err
     assert not out.exists()
+
+
+def test_jpeg_frames_with_halved_chroma_choose_the_420_loss(real, lens_only, tmp_path):
+    """The loss follows the frames: 4:2:0 JPEGs (the realistic capture's, as phones write
+    them) get srgb420, whose rays come in the aligned 2 x 2 blocks of the chroma samples; EXR
+    frames keep srgb. The fit's config (what config.toml records) holds the choice."""
+    import io
+
+    from clrefract.fit.config import FitConfig
+    from clrefract.fit.rays import TrainingRays
+    from clrefract.fit.trainer import Fit
+
+    assert Dataset(real).chroma_halved() and not Dataset(lens_only).chroma_halved()
+    rays = TrainingRays(Dataset(real), FitConfig())
+    anchors = np.random.default_rng(0).choice(len(rays.rgb), 400, replace=False)
+    idx = rays.chroma_blocks(anchors).reshape(100, 4)
+    view = rays.view_of[idx]
+    local = idx - rays.view_start[view]
+    w = rays.view_shape[view[:, 0], 1]
+    rows, cols = local // w[:, None], local % w[:, None]
+    assert np.all(view == view[:, :1]) and np.all((idx == anchors[:100, None]).any(1))
+    assert np.all(rows.min(1) % 2 == 0) and np.all(rows.max(1) == rows.min(1) + 1)
+    assert np.all(cols.min(1) % 2 == 0) and np.all(cols.max(1) == cols.min(1) + 1)
+
+    for data, want in ((real, "srgb420"), (lens_only, "srgb")):
+        log = io.StringIO()
+        fit = Fit(data, tmp_path / want, FitConfig(field="voxel", res=8), stream=log)
+        assert fit.cfg.loss == want and ("loss: srgb420" in log.getvalue()) == (want == "srgb420")

@@ -13,10 +13,12 @@ import clrefract.evaluate
 import clrefract.table
 from clrefract.baselines.methods import METHODS
 from clrefract.cli import main
-from clrefract.table import FIGURES, SCENES, page, read_records
+from clrefract.family import FAMILY
+from clrefract.table import FIGURES, GLANCE_BEGIN, GLANCE_END, SCENES, glance, page, read_records
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGE = ROOT / "docs" / "results.md"
+README = ROOT / "README.md"
 
 
 @pytest.fixture
@@ -30,7 +32,7 @@ def stubbed(tmp_path, monkeypatch):
         return {"method": method, "wall_seconds": 10.0 + len(figures)}
 
     def score(run, samples=None):
-        scene, method = run.name.split("-")
+        scene, method = run.name.rsplit("-", 1)
         k = len(figures)
         figures[scene, method] = {
             "psnr": 20.125 + k,
@@ -116,14 +118,86 @@ def test_docs_results_is_the_page_of_its_saved_records():
     """docs/results.md is what `clrefract table page docs/results.json` writes, and states the
     command that measures it again (it parses)."""
     records = read_records(PAGE.with_suffix(".json"))
-    assert PAGE.read_text() == page(records, "docs/results.md"), (
-        "docs/results.md is stale: clrefract table page docs/results.json --out docs/results.md"
+    assert PAGE.read_text() == page(records, "docs/results.md", "README.md"), (
+        "docs/results.md is stale: clrefract table page docs/results.json --out docs/results.md "
+        "--readme README.md"
     )
     commands = [a for _, a in clrefract_commands(PAGE.read_text())]
     protocol = records[0]["protocol"]
     measure = ["table", "run", "--protocol", protocol, "--out", f"table/{protocol}"]
-    assert [*measure, "--page", "docs/results.md"] in commands
-    assert ["table", "page", "docs/results.json", "--out", "docs/results.md"] in commands
+    measure += ["--family-methods", "interface", "--page", "docs/results.md"]
+    assert [*measure, "--readme", "README.md"] in commands
+    again = ["table", "page", "docs/results.json", "--out", "docs/results.md"]
+    assert [*again, "--readme", "README.md"] in commands
     assert all(_parse(a) == "" for a in commands)
     names = {(r["scene"], r["method"]) for r in records}
-    assert names == {(s, m) for s in SCENES for m in METHODS}
+    assert names == {(s, m) for s in SCENES for m in METHODS} | {(s, "interface") for s in FAMILY}
+    # the README's results at a glance are this page's
+    block = README.read_text().split(GLANCE_BEGIN + "\n")[1].split(GLANCE_END)[0]
+    assert block == glance(records, "docs/results.md"), (
+        "README.md's results at a glance are stale: clrefract table page docs/results.json "
+        "--out docs/results.md --readme README.md"
+    )
+
+
+def _glance_cells(block: str) -> dict[str, list[str]]:
+    rows = [line.strip("|").split("|") for line in block.splitlines() if line.startswith("| ")]
+    return {r[0].strip(): [c.strip() for c in r[1:]] for r in rows}
+
+
+def test_the_family_and_the_readme_come_with_the_page(tmp_path, stubbed, capsys):
+    """`--family-methods` runs the family's solids beside Table 1 and the page gives them a
+    table of their own; `--readme` writes the results at a glance between the README's comment
+    lines, leaving the rest of it as it was; a README without them is refused, naming it."""
+    readme, path = tmp_path / "README.md", tmp_path / "docs" / "results.md"
+    before, after = "# a tool\n\n## Results\n\n", "\nMore words.\n"
+    readme.write_text(before + GLANCE_BEGIN + "\nold\n" + GLANCE_END + after)
+    run = ["table", "run", "--protocol", "tiny", "--out", str(tmp_path / "t")]
+    run += ["--methods", "synapse,interface", "--family-methods", "interface"]
+    assert main([*run, "--page", str(path), "--readme", str(readme)]) == 0
+    records = read_records(path.with_suffix(".json"))
+    assert len(records) == 2 * len(SCENES) + len(FAMILY) == len(stubbed)
+    md = path.read_text()
+    assert md == page(records, path, readme)
+    family = _cells(md, "The family of glass solids")
+    psnr = [stubbed[s, "interface"]["psnr"] for s in FAMILY]
+    for s in FAMILY:
+        want = stubbed[s, "interface"]
+        assert family[s][:5] == [
+            "`interface`",
+            f"{want['psnr']:.2f}",
+            f"{want['ssim']:.3f}",
+            f"{want['chamfer_mm']:.2f}",
+            f"{want['eta_rmse']:.4f}",
+        ]
+    assert family["mean"][1] == f"{sum(psnr) / len(psnr):.2f}"
+    # Table 1's figures leave the family out
+    assert list(_cells(md, "PSNR (dB, test views)")["Method"]) == [*SCENES, "mean", "paper"]
+
+    text = readme.read_text()
+    assert text.startswith(before + GLANCE_BEGIN + "\n") and text.endswith(GLANCE_END + after)
+    block = text.split(GLANCE_BEGIN + "\n")[1].split(GLANCE_END)[0]
+    assert block == glance(records, "docs/results.md") and "[results.md](docs/results.md)" in block
+    cells = _glance_cells(block)
+    for i, scene in enumerate(SCENES):
+        assert cells["Interface (SDF + Snell) (`interface`)"][i] == (
+            f"{stubbed[scene, 'interface']['psnr']:.2f}"
+        )
+    assert f"{min(psnr):.2f} to {max(psnr):.2f}" in block
+
+    commands = [a for _, a in clrefract_commands(md)]
+    measure = [a for a in commands if a[:2] == ["table", "run"] and "quick" not in a]
+    assert measure == [
+        [*run[:5], "table/tiny", *run[6:], "--page", str(path), "--readme", str(readme)]
+    ]
+    (again,) = [a for a in commands if a[:2] == ["table", "page"]]
+    readme.write_text(before + GLANCE_BEGIN + "\n" + GLANCE_END + after)
+    assert main(again) == 0 and readme.read_text() == text and path.read_text() == md
+
+    bare = tmp_path / "BARE.md"
+    bare.write_text("# no markers\n")
+    capsys.readouterr()
+    assert main([*again[:-1], str(bare)]) == 2
+    err = capsys.readouterr().err
+    assert str(bare) in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert main([*run, "--readme", str(readme)]) == 2  # a glance of no page

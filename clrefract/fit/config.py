@@ -154,7 +154,7 @@ class FitConfig:
     occupancy_every: int = 25
     occupancy_res: int = 32
     precision: str = "float32"
-    loss: str = "srgb"
+    loss: str = "auto"
     queues: int = 1
     lanes: int = 0  # 0: device default
     device: str = ""  # under MPI: a comma-separated list is indexed by local rank
@@ -359,8 +359,10 @@ HELP = {
     "occupancy_every": "with --skip-empty: rebuild the occupancy every this many iterations",
     "occupancy_res": "with --skip-empty: occupancy grid resolution over the box, per axis",
     "precision": "floating-point precision of the device kernels",
-    "loss": "colour space of the loss: srgb (encoded and clipped, as the test metrics) or "
-    "linear radiance",
+    "loss": "colour space of the loss: auto (srgb420 where every training frame is a JPEG "
+    "with 4:2:0 chroma, else srgb); srgb (encoded and clipped, as the test metrics); "
+    "srgb420: luma per pixel, chroma per 2 x 2 block (photographs stored as JPEG with 4:2:0 "
+    "chroma subsampling, as phones and most cameras write them); linear radiance",
     "queues": "command queues the batch is split across",
     "lanes": "rays per work-item (0: the device's default)",
     "device": "OpenCL device: 'P:D' index or a name substring; under MPI a comma-separated "
@@ -397,7 +399,7 @@ CHOICES = {
     "refit": ("best", "step"),
     "adjoint": ADJOINTS,
     "precision": ("float32", "float64"),
-    "loss": ("srgb", "linear"),
+    "loss": ("auto", "srgb", "srgb420", "linear"),
 }
 KNOWN = {f.name: f for f in fields(FitConfig)}
 

@@ -16,12 +16,18 @@ class Objective:
         self.batch, self.seed = batch, seed
         self._held_idx = None
 
+    def _compared(self, idx: np.ndarray, group: int = 1) -> np.ndarray:
+        """The rays that stand for idx: under the srgb420 loss, whole 2 x 2 blocks (as many
+        rays), unless they come in larger blocks already."""
+        return self.rays.chroma_blocks(idx) if self.space == "srgb420" and group == 1 else idx
+
     def render(self, tracer, idx: np.ndarray) -> tuple[float, np.ndarray]:
-        """The loss of rays idx against the sharp environment (forward pass only), and each
-        ray's radiance (linear RGB, black where trapped)."""
+        """The loss of rays idx against the sharp environment (forward pass only), and the
+        radiance of each ray compared (linear RGB, black where trapped)."""
         from ..gradient import traced_loss
 
         r = self.rays
+        idx = self._compared(idx)
         t = tracer.trace(r.origins[idx], r.dirs[idx])
         loss, _, radiance = traced_loss(
             r.env, t.status, t.direction, r.rgb[idx], r.weights[idx], self.space
@@ -35,6 +41,7 @@ class Objective:
         """The loss and adjoint gradient of rays idx; against the images and environment
         blurred as at iteration `it` (None: sharp)."""
         r = self.rays
+        idx = self._compared(idx, group)
         env, targets = r.blurred(it) if it is not None else (r.env, r.rgb)
         return engine.loss_and_grad(
             r.origins[idx], r.dirs[idx], targets[idx], env, r.weights[idx], group

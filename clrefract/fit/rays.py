@@ -140,18 +140,27 @@ class TrainingRays:
             idx = self.blocks(idx[:count], side)
         return idx, side
 
-    def blocks(self, anchors: np.ndarray, side: int) -> np.ndarray:
+    def blocks(self, anchors: np.ndarray, side: int, aligned: bool = False) -> np.ndarray:
         """The rays of side x side pixel blocks around the anchor rays, block after block
-        (a block is kept inside its view)."""
+        (a block is kept inside its view); aligned: the blocks of a side x side tiling of
+        each view that hold the anchors."""
         view = self.view_of[anchors]
         local = anchors - self.view_start[view]
         h, w = self.view_shape[view].T
-        y0 = np.clip(local // w - side // 2, 0, np.maximum(h - side, 0))
-        x0 = np.clip(local % w - side // 2, 0, np.maximum(w - side, 0))
+        if aligned:
+            y0, x0 = local // w // side * side, local % w // side * side
+        else:
+            y0 = np.clip(local // w - side // 2, 0, np.maximum(h - side, 0))
+            x0 = np.clip(local % w - side // 2, 0, np.maximum(w - side, 0))
         dy, dx = np.divmod(np.arange(side * side), side)
         rows = np.minimum(y0[:, None] + dy, h[:, None] - 1)
         cols = np.minimum(x0[:, None] + dx, w[:, None] - 1)
         return (self.view_start[view][:, None] + rows * w[:, None] + cols).ravel()
+
+    def chroma_blocks(self, idx: np.ndarray) -> np.ndarray:
+        """As many rays as idx: the aligned 2 x 2 blocks (a 4:2:0 JPEG's chroma samples) that
+        hold its first quarter, for the srgb420 loss."""
+        return self.blocks(idx[: max(len(idx) // 4, 1)], 2, aligned=True)
 
     def blurred(self, it: int) -> tuple:
         """The environment and training images at an iteration, blurred alike: sigma pixels

@@ -40,6 +40,13 @@ class Fit:
             if cfg.step == 0:
                 cfg.step = self.kind.early_step(self.box, cfg)  # recorded in config.toml
         self.eta_max = cfg.eta_max or self.ds.scene.eta_range[1] * 1.05
+        if cfg.loss == "auto":  # recorded in config.toml
+            cfg.loss = "srgb420" if self.ds.chroma_halved() else "srgb"
+            if cfg.loss == "srgb420":
+                self.stream.write(
+                    "loss: srgb420 (the frames are JPEGs with 4:2:0 chroma: luma per pixel, "
+                    "chroma per 2 x 2 block)\n"
+                )
         self.rays = TrainingRays(self.ds, cfg)
         self.objective = Objective(self.rays, cfg.loss, cfg.batch, cfg.seed)
         self.hulls = Hulls(self.ds, cfg, self.rays)
