@@ -317,11 +317,11 @@ def image_path(root: Path, rel: str, suffix: str) -> Path:
     return p if p.suffix.lower() in IMAGE_SUFFIXES else p.with_name(p.name + suffix)
 
 
-def read_frame_image(path: Path, cam: Camera):
+def read_frame_image(path: Path, cam: Camera, chroma: str = "decoded"):
     """A frame's linear image (times its exposure and white balance), the loss weight of
     each pixel (0 where the photograph clipped: its radiance is unknown), checked against its
-    camera, and its alpha (None without one)."""
-    img, clipped, alpha = read_frame_rgba(path)
+    camera, and its alpha (None without one); chroma as imageio.read_photo's."""
+    img, clipped, alpha = read_frame_rgba(path, chroma)
     if img.shape[:2] != (cam.height, cam.width):
         raise ClrefractError(
             f"{path}: image is {img.shape[1]}x{img.shape[0]} but its "
@@ -444,6 +444,9 @@ class Dataset:
                 raise ClrefractError(f"{self.root / cam.mask_path}: mask file not found")
         self._weights: dict[str, np.ndarray] = {}
         self._alpha_masks: dict[int, np.ndarray | None] = {}
+        # "stored": 4:2:0 JPEG training frames' colour as their blocks stored it (what the
+        # srgb420 loss compares); test frames stay as decoded, as `eval` scores them
+        self.train_chroma = "decoded"
 
     @property
     def box(self) -> Box:
@@ -457,7 +460,8 @@ class Dataset:
 
     def frame(self, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
         """Linear image (H, W, 3) and per-pixel loss weights (H, W) of a frame."""
-        img, weight, alpha = read_frame_image(self.frame_path(cam), cam)
+        chroma = self.train_chroma if any(c is cam for c in self.train) else "decoded"
+        img, weight, alpha = read_frame_image(self.frame_path(cam), cam, chroma)
         self._alpha_masks[id(cam)] = alpha_mask(alpha)  # read once: masks come from it too
         return img, weight
 

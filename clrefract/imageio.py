@@ -203,6 +203,10 @@ def read_pillow(path: PathLike, what: str, kind: str) -> np.ndarray:
         raise ClrefractError(f"{path}: not a readable {kind}") from None
 
 
+# JPEG's YCbCr (ITU-R BT.601, full range) of sRGB-encoded RGB: rows Y, Cb, Cr
+YCC = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
+
+
 def chroma_halved(path: PathLike) -> bool:
     """Whether a file is a JPEG whose chroma is stored at half the resolution both ways
     (4:2:0, Pillow's default and most cameras'); read from its header alone."""
@@ -215,15 +219,50 @@ def chroma_halved(path: PathLike) -> bool:
         return False
 
 
+def _unblur(x: np.ndarray, axis: int) -> np.ndarray:
+    """Solve [1, 6, 1] / 8 (its ends 7/8 and 1/8: edges replicated) along an axis."""
+    from scipy.linalg import solve_banded
+
+    n = x.shape[axis]
+    if n == 1:
+        return x
+    bands = np.empty((3, n))
+    bands[0], bands[1], bands[2] = 1 / 8, 6 / 8, 1 / 8
+    bands[1, [0, -1]] = 7 / 8
+    moved = np.moveaxis(x, axis, 0)
+    out = solve_banded((1, 1), bands, moved.reshape(n, -1)).reshape(moved.shape)
+    return np.moveaxis(out, 0, axis)
+
+
+def stored_chroma(encoded: np.ndarray) -> np.ndarray:
+    """A 4:2:0 JPEG's decoded sRGB values (H, W, 3) in [0, 1], each pixel's chroma replaced
+    by the sample its 2 x 2 block stored, the luma kept. libjpeg (Pillow's decoder) upsamples
+    chroma by a triangle filter (3/4 and 1/4 of the nearest samples each way), so the
+    mean over a block is the stored samples filtered by [1, 6, 1] / 8 each way, solved here
+    for them: the decoder's smear of colour edges is undone, its quantisation kept."""
+    x = np.asarray(encoded, np.float64)
+    h, w = x.shape[:2]
+    x = np.pad(x, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+    ycc = x @ YCC.T
+    means = ycc[:, :, 1:].reshape(x.shape[0] // 2, 2, x.shape[1] // 2, 2, 2).mean(axis=(1, 3))
+    stored = _unblur(_unblur(means, 0), 1)
+    ycc[:, :, 1:] = stored.repeat(2, axis=0).repeat(2, axis=1)
+    rgb = ycc @ np.linalg.inv(YCC).T
+    return np.clip(rgb[:h, :w], 0.0, 1.0).astype(np.float32)
+
+
 def read_photo_rgb(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Linear RGB (H, W, 3) float32 of an sRGB PNG or JPEG (8 or 16 bits, grey or colour,
     alpha ignored), and the (H, W) bool map of pixels clipped in some channel."""
     return read_photo(path)[:2]
 
 
-def read_photo(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def read_photo(
+    path: PathLike, chroma: str = "decoded"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """read_photo_rgb's linear RGB and clipped map, and the alpha (H, W) in [0, 1] of a
-    grey+alpha or RGBA file (None without one). RGB is used as stored: not premultiplied."""
+    grey+alpha or RGBA file (None without one). RGB is used as stored: not premultiplied.
+    chroma="stored": a 4:2:0 JPEG's colour as its blocks stored it (stored_chroma)."""
     raw = read_pillow(path, "image", "PNG or JPEG image")
     if raw.dtype not in (np.uint8, np.uint16) or raw.ndim not in (2, 3):
         raise ClrefractError(f"{path}: unsupported image layout {raw.shape} of {raw.dtype}")
@@ -234,6 +273,8 @@ def read_photo(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | Non
     encoded = rgb.astype(np.float32) / top
     saturated = (encoded >= SATURATED - 1e-6).any(axis=2)
     alpha = raw[:, :, -1].astype(np.float32) / top if raw.shape[2] in (2, 4) else None
+    if chroma == "stored" and chroma_halved(path):
+        encoded = stored_chroma(encoded)
     return srgb_to_linear(encoded), saturated, alpha
 
 
@@ -243,10 +284,11 @@ def read_frame(path: PathLike) -> tuple[np.ndarray, np.ndarray | None]:
     return read_frame_rgba(path)[:2]
 
 
-def read_frame_rgba(path: PathLike):
-    """read_frame's linear RGB and clipped map, and the frame's alpha (None without one)."""
+def read_frame_rgba(path: PathLike, chroma: str = "decoded"):
+    """read_frame's linear RGB and clipped map, and the frame's alpha (None without one);
+    chroma as read_photo's."""
     if Path(path).suffix.lower() in PHOTO_SUFFIXES:
-        return read_photo(path)
+        return read_photo(path, chroma)
     rgb, alpha = read_exr_rgba(path)
     return rgb, None, alpha
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from .envmap import EnvMap
+from .imageio import YCC
 
 
 def envmap_lookup_jacobian(env: EnvMap, directions: np.ndarray):
@@ -50,8 +51,6 @@ def envmap_lookup_jacobian(env: EnvMap, directions: np.ndarray):
     return rad, jac
 
 
-# JPEG's YCbCr (ITU-R BT.601, full range) of sRGB-encoded RGB: rows Y, Cb, Cr
-YCC = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
 SPACES = ("srgb", "srgb420", "linear")
 
 

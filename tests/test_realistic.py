@@ -195,7 +195,8 @@ def test_bad_flaws_are_refused_before_writing(tmp_path, capsys, flaws, words):
 def test_jpeg_frames_with_halved_chroma_choose_the_420_loss(real, lens_only, tmp_path):
     """The loss follows the frames: 4:2:0 JPEGs (the realistic capture's, as phones write
     them) get srgb420, whose rays come in the aligned 2 x 2 blocks of the chroma samples; EXR
-    frames keep srgb. The fit's config (what config.toml records) holds the choice."""
+    frames keep srgb. The fit's config (what config.toml records) holds the choice, and its
+    training frames' colour is what their blocks stored (imageio.stored_chroma)."""
     import io
 
     from clrefract.fit.config import FitConfig
@@ -218,3 +219,9 @@ def test_jpeg_frames_with_halved_chroma_choose_the_420_loss(real, lens_only, tmp
         log = io.StringIO()
         fit = Fit(data, tmp_path / want, FitConfig(field="voxel", res=8), stream=log)
         assert fit.cfg.loss == want and ("loss: srgb420" in log.getvalue()) == (want == "srgb420")
+        # training frames as their blocks stored their colour; test frames as decoded
+        plain = Dataset(data)
+        for split, changed in (("train", want == "srgb420"), ("test", False)):
+            cam, same = getattr(fit.ds, split)[0], getattr(plain, split)[0]
+            moved = np.abs(fit.ds.image(cam) - plain.image(same)).max()
+            assert (moved > 1e-3) == changed, (split, moved)

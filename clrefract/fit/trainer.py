@@ -45,8 +45,10 @@ class Fit:
             if cfg.loss == "srgb420":
                 self.stream.write(
                     "loss: srgb420 (the frames are JPEGs with 4:2:0 chroma: luma per pixel, "
-                    "chroma per 2 x 2 block)\n"
+                    "chroma per 2 x 2 block as the file stored it)\n"
                 )
+        if cfg.loss == "srgb420":  # the blocks' colour as stored, not the decoder's smear
+            self.ds.train_chroma = "stored"
         self.rays = TrainingRays(self.ds, cfg)
         self.objective = Objective(self.rays, cfg.loss, cfg.batch, cfg.seed)
         self.hulls = Hulls(self.ds, cfg, self.rays)
