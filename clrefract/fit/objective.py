@@ -5,7 +5,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..loss import SPACES
 from .rays import Tag, TrainingRays
+
+
+def loss_space(setting: str, ds) -> str:
+    """The loss's colour space: the setting, or where it leaves it to the frames (auto),
+    srgb420 for JPEGs that store colour per 2 x 2 block, else srgb."""
+    if setting in SPACES:
+        return setting
+    return "srgb420" if ds.chroma_halved() else "srgb"
 
 
 class Objective:

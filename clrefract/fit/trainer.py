@@ -14,7 +14,7 @@ from .binding import Bound, engine_for, forward_settings
 from .config import FitConfig
 from .kinds import interface_step_scale, kind_named, kind_of
 from .loop import train
-from .objective import Objective
+from .objective import Objective, loss_space
 from .occupancy import TrainingOccupancy
 from .optimizers import optimizer_for
 from .rays import TrainingRays
@@ -40,13 +40,13 @@ class Fit:
             if cfg.step == 0:
                 cfg.step = self.kind.early_step(self.box, cfg)  # recorded in config.toml
         self.eta_max = cfg.eta_max or self.ds.scene.eta_range[1] * 1.05
-        if cfg.loss == "auto":  # recorded in config.toml
-            cfg.loss = "srgb420" if self.ds.chroma_halved() else "srgb"
-            if cfg.loss == "srgb420":
-                self.stream.write(
-                    "loss: srgb420 (the frames are JPEGs with 4:2:0 chroma: luma per pixel, "
-                    "chroma per 2 x 2 block as the file stored it)\n"
-                )
+        chosen = loss_space(cfg.loss, self.ds)
+        if chosen != cfg.loss and chosen == "srgb420":
+            self.stream.write(
+                "loss: srgb420 (the frames are JPEGs with 4:2:0 chroma: luma per pixel, "
+                "chroma per 2 x 2 block as the file stored it)\n"
+            )
+        cfg.loss = chosen  # recorded in config.toml
         if cfg.loss == "srgb420":  # the blocks' colour as stored, not the decoder's smear
             self.ds.train_chroma = "stored"
         self.rays = TrainingRays(self.ds, cfg)
