@@ -567,6 +567,11 @@ def _names(text: str) -> list[str]:
     return [n for n in text.split(",") if n]
 
 
+def _check_readme(args) -> None:
+    if args.readme and not args.page:
+        raise ClrefractError("--readme needs --page: the results at a glance summarise the page")
+
+
 def _cmd_table_run(args) -> int:
     from . import shards
     from .table import run_protocol, write_page, write_table
@@ -575,8 +580,7 @@ def _cmd_table_run(args) -> int:
     whole = shards.parse(args.shard)[1] == 1
     if args.page and not whole:
         raise ClrefractError("--page needs the whole protocol: give it to `table merge`")
-    if args.readme and not args.page:
-        raise ClrefractError("--readme needs --page: the results at a glance summarise the page")
+    _check_readme(args)
     records = run_protocol(
         args.protocol,
         out,
@@ -597,8 +601,7 @@ def _cmd_table_run(args) -> int:
 def _cmd_table_merge(args) -> int:
     from .table import merge, write_page, write_table
 
-    if args.readme and not args.page:
-        raise ClrefractError("--readme needs --page: the results at a glance summarise the page")
+    _check_readme(args)
     out = Path(args.out)
     records = merge([Path(f) for f in args.folders])
     write_table(records, out)

@@ -374,9 +374,6 @@ def _figure_table(records, key, digits, paper_key) -> list[str]:
     return lines
 
 
-FAMILY_FIGURES = FIGURES[:-1] + (("wall_seconds", "wall time (s)", 0, None),)
-
-
 def _family_table(records) -> list[str]:
     """The family's solids, a row per (solid, method), then each method's mean."""
     head = ["Solid", "Method", "PSNR (dB)", "SSIM", "D_C (mm)", "eta RMSE", "wall time (s)"]
@@ -385,8 +382,8 @@ def _family_table(records) -> list[str]:
         rows = [r for r in records if r["method"] == m]
         for r in [*sorted(rows, key=lambda r: FAMILY.index(r["scene"])), None]:
             name = "mean" if r is None else r["scene"]
-            figures = [_mean(rows, k) if r is None else r[k] for k, *_ in FAMILY_FIGURES]
-            cells = [_f(v, d) for v, (_, _, d, _) in zip(figures, FAMILY_FIGURES)]
+            figures = [_mean(rows, k) if r is None else r[k] for k, *_ in FIGURES]
+            cells = [_f(v, d) for v, (_, _, d, _) in zip(figures, FIGURES)]
             lines.append(f"| {name} | `{m}` | " + " | ".join(cells) + " |")
     return lines
 
