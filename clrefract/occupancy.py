@@ -33,20 +33,21 @@ def occupied_cells(
         xs = axes[0][i * sub : (i + 1) * sub + 1]
         pts = np.stack(np.meshgrid(xs, axes[1], axes[2], indexing="ij"), -1).reshape(-1, 3)
         eta = evaluate(pts)[0].reshape(len(xs), n, n)
-        hi = eta.max(0)
-        lo = eta.min(0)
-        # per cell in y and z: the samples from its lower to its upper corner
-        for j in range(res):
-            sl = slice(j * sub, (j + 1) * sub + 1)
-            h = hi[sl].reshape(sub + 1, res * sub + 1)
-            lw = lo[sl].reshape(sub + 1, res * sub + 1)
-            hmax, lmin = h.max(0), lw.min(0)
-            for k in range(res):
-                kk = slice(k * sub, (k + 1) * sub + 1)
-                occ[i, j, k] = hmax[kk].max() > lmin[kk].min()
+        hi = _cell_extreme(_cell_extreme(eta.max(0), sub, 0, np.maximum), sub, 1, np.maximum)
+        lo = _cell_extreme(_cell_extreme(eta.min(0), sub, 0, np.minimum), sub, 1, np.minimum)
+        occ[i] = hi > lo
     if dilate > 0:
         occ = binary_dilation(occ, iterations=dilate)
     return occ
+
+
+def _cell_extreme(a: np.ndarray, sub: int, axis: int, op) -> np.ndarray:
+    """op over each cell's samples along `axis`: samples k sub .. (k + 1) sub, both corners
+    included (a corner belongs to the cells on either side of it)."""
+    a = np.moveaxis(a, axis, 0)
+    cells = (a.shape[0] - 1) // sub
+    inner = op.reduce(a[:-1].reshape(cells, sub, *a.shape[1:]), axis=1)
+    return np.moveaxis(op(inner, a[sub::sub]), 0, axis)
 
 
 def empty_distance(

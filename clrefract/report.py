@@ -21,11 +21,11 @@ def pyplot():
     return plt
 
 
-def plot_metrics(metrics_path: Path, out_png: Path) -> None:
+def plot_metrics(metrics_path: Path, out_png: Path, best_iteration: int | None = None) -> None:
     rows = [json.loads(ln) for ln in Path(metrics_path).read_text().splitlines() if ln.strip()]
     if not rows:
         return
-    fig = metrics_figure(rows)  # with the held-out loss, which picks the field that is kept
+    fig = metrics_figure(rows, best_iteration)  # the held-out loss picks the field kept
     with atomic_path(out_png, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=110)
     pyplot().close(fig)
@@ -243,7 +243,10 @@ def write_fit_report(fit) -> dict:
     rows = _guarded(result, "metrics.jsonl", lambda: _metric_rows(out / "metrics.jsonl")) or []
     result["train_seconds"] = float(sum(r.get("seconds", 0.0) for r in rows))
     result["final_loss"] = rows[-1].get("loss") if rows else None
-    _guarded(result, "loss.png", lambda: plot_metrics(out / "metrics.jsonl", out / "loss.png"))
+    kept = fit.best.iteration if fit.best.found else None
+    _guarded(
+        result, "loss.png", lambda: plot_metrics(out / "metrics.jsonl", out / "loss.png", kept)
+    )
     _guarded(
         result,
         "slices.png",

@@ -52,7 +52,7 @@ def write_html_report(
 
     parts = [_header_html(run, meta)]
     parts.append(_section("Scores", _scores_html(results)))
-    parts.append(_section("Loss", _figure_section(lambda: _loss_figure(rows, results), notes)))
+    parts.append(_section("Loss", _figure_section(lambda: _loss_figure(run, rows, results), notes)))
     try:
         views = _views_html(run, results, settings, ds, model, notes)
     except Exception as exc:  # noqa: BLE001 - one failing part must spare the page
@@ -286,9 +286,13 @@ def _scores_html(results: dict) -> str:
     return text
 
 
-def _loss_figure(rows: list[dict], results: dict) -> bytes | None:
+def _loss_figure(run: Path, rows: list[dict], results: dict) -> bytes | None:
+    """RUN/loss.png where the fit's finish drew it after the last metrics row, else drawn."""
     if not rows:
         return None
+    png, metrics = run / "loss.png", run / "metrics.jsonl"
+    if png.is_file() and png.stat().st_mtime >= metrics.stat().st_mtime:
+        return png.read_bytes()
     return _fig_png(metrics_figure(rows, results.get("best_iteration")))
 
 

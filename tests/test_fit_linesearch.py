@@ -301,25 +301,38 @@ def test_a_small_hash_grid_follows_its_level_set_down(sphere_12x24, tmp_path, re
     assert np.allclose(resumed.direction, with_guide.direction, atol=1e-6)
 
 
-def _one_step_run(data, tmp_path):
-    """A one-step line search of a 16^3 level set on `data`, the 24 x 24 sphere of 8 views
-    (sphere_8x24), through the command line: `clrefract.cli.main`, the run folder, and the fit
-    command's arguments (without --optimizer), the config file's path."""
+@pytest.fixture(scope="module")
+def one_step_run(_sphere_8x24, tmp_path_factory):
+    """A one-step line search of a 16^3 level set on the 24 x 24 sphere of 8 views
+    (sphere_8x24), through the command line; tests resume copies of it (_one_step_run)."""
+    from clrefract.cli import main
+
+    root = tmp_path_factory.mktemp("one_step")
+    toml = root / "fit.toml"
+    toml.write_text("tighten_hull = false\nshell_starts = false\n")
+    fit = ["fit", str(_sphere_8x24[0]), "--out", str(root / "run"), "--field", "levelset"]
+    line = ["--optimizer", "line-search", "--batch", "1024", "--test-views", "1"]
+    assert main([*fit, "--res", "16", *line, "--iterations", "1", "--config", str(toml)]) == 0
+    return root / "run"
+
+
+def _one_step_run(data, one_step_run, tmp_path):
+    """A copy of one_step_run in tmp_path: `clrefract.cli.main`, the run folder, and the fit
+    command's arguments (without --optimizer) that resume it."""
+    import shutil
+
     from clrefract.cli import main
 
     run = tmp_path / "run"
-    toml = tmp_path / "fit.toml"
-    toml.write_text("tighten_hull = false\nshell_starts = false\n")
+    shutil.copytree(one_step_run, run)
     fit = ["fit", str(data), "--out", str(run), "--field", "levelset", "--res", "16"]
-    line = ["--optimizer", "line-search", "--batch", "1024", "--test-views", "1"]
-    assert main([*fit, *line, "--iterations", "1", "--config", str(toml)]) == 0
-    return main, run, fit, toml
+    return main, run, fit
 
 
-def test_resume_adds_steps_to_a_finished_line_search(sphere_8x24, tmp_path, capsys):
+def test_resume_adds_steps_to_a_finished_line_search(sphere_8x24, one_step_run, tmp_path, capsys):
     """`--resume --iterations N` lengthens a line-search run (its steps have no schedule
     that depends on their count); it cannot shorten one."""
-    main, run, fit, toml = _one_step_run(sphere_8x24, tmp_path)
+    main, run, fit = _one_step_run(sphere_8x24, one_step_run, tmp_path)
     assert main([*fit, "--resume", "--iterations", "2"]) == 0
     rows = [json.loads(x) for x in (run / "metrics.jsonl").open()]
     assert [r["iteration"] for r in rows] == [1, 2]
@@ -439,13 +452,15 @@ def test_size_search_grows_a_shrunk_sphere_and_raises_its_index(sphere_25x48, tm
     assert np.allclose(fit.best.params[:-1], fit.params[:-1] - row["grow_mm"])
 
 
-def test_resume_with_another_width_narrows_a_finished_line_search(sphere_8x24, tmp_path, capsys):
+def test_resume_with_another_width_narrows_a_finished_line_search(
+    sphere_8x24, one_step_run, tmp_path, capsys
+):
     """`--resume --width W` records the new interface in config.toml and ends the run there:
     its best level set searched for size and index at W (results.json says what the search
     did), and judged against the earlier width's field on the held-out views; the earlier
     field stays where it scores better (a 4 mm ramp blurs the 0.5 mm sphere), with its
     width."""
-    main, run, fit, toml = _one_step_run(sphere_8x24, tmp_path)
+    main, run, fit = _one_step_run(sphere_8x24, one_step_run, tmp_path)
     assert load_config(run / "config.toml", {}).width == 1.0
     assert main([*fit, "--resume", "--width", "0.5"]) == 0
     result = json.loads((run / "results.json").read_text())

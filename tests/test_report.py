@@ -4,7 +4,9 @@ came from."""
 
 from __future__ import annotations
 
+import base64
 import json
+import os
 import shutil
 from datetime import datetime
 from pathlib import Path
@@ -66,7 +68,14 @@ def test_fit_writes_the_report_and_records_where_the_run_came_from(sphere16, tmp
     assert "start:" not in captured.err and "it/s" not in captured.err  # --quiet
     assert "test_psnr" in json.loads(captured.out)
     results = json.loads((run / "results.json").read_text())
-    _check_page((run / "report.html").read_text(), [v["view"] for v in results["views"]])
+    page = (run / "report.html").read_text()
+    _check_page(page, [v["view"] for v in results["views"]])
+    # the page inlines the loss figure the fit's finish drew, unless metrics came after it
+    drawn = base64.b64encode((run / "loss.png").read_bytes()).decode()
+    assert drawn in page
+    os.utime(run / "metrics.jsonl")
+    assert main(["report", str(run), "--out", str(tmp_path / "later.html")]) == 0
+    assert drawn not in (tmp_path / "later.html").read_text()
     meta = json.loads((run / "run.json").read_text())
     assert {"dataset", "box", "eta_max"} <= set(meta)  # the keys a run had before
     assert meta["command"].startswith("clrefract --quiet fit ")

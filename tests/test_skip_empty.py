@@ -150,6 +150,32 @@ def test_occupancy_covers_a_thin_interface():
     assert occ[cells[:, 0], cells[:, 1], cells[:, 2]].all()
 
 
+def test_a_cell_is_occupied_where_its_own_samples_differ():
+    """Against a loop over the cells of the whole sample lattice: a cell's samples run from
+    its lower corner to its upper one, both included. A field of flat steps whose edges
+    fall on, beside and between sample planes."""
+
+    class Steps:
+        def eval(self, p):
+            eta = 1 + 0.1 * (p[:, 0] >= 10) + 0.2 * (np.abs(p[:, 1] - 3) < 7) * (p[:, 2] > -21)
+            return eta, None
+
+    box, res, sub = Box((-40, -40, -40), (40, 40, 40), 4.0), 8, 3
+    n = res * sub + 1
+    axes = np.linspace(-40, 40, n)
+    pts = np.stack(np.meshgrid(axes, axes, axes, indexing="ij"), -1).reshape(-1, 3)
+    eta = Steps().eval(pts)[0].reshape(n, n, n)
+    want = np.zeros((res, res, res), bool)
+    for i, j, k in np.ndindex(want.shape):
+        c = eta[
+            i * sub : i * sub + sub + 1, j * sub : j * sub + sub + 1, k * sub : k * sub + sub + 1
+        ]
+        want[i, j, k] = c.max() > c.min()
+    got = occupied_cells(Steps(), box, res=res, sub=sub, dilate=0)
+    assert 0 < want.sum() < want.size / 2
+    assert np.array_equal(got, want)
+
+
 def test_discrete_adjoint_refuses_skipping():
     vox = VoxelGrid(np.ones((8, 8, 8)))
     with pytest.raises(ClrefractError, match="discrete adjoint"):
