@@ -66,11 +66,8 @@ class InterfaceTracer:
         self.tol, self.offset = tolerances(self.box, self.precision)
         defines = {
             **field.defines(),
-            **self.box.defines(),
+            "GEO_AT": 3,  # fp: tol, offset, min_step, then the geometry (upload_field)
             "LANES": 1,
-            "TOL": repr(self.tol),
-            "OFFSET": repr(self.offset),
-            "MIN_STEP": repr(field.min_step()),
             "MAX_EVENTS": MAX_EVENTS,
             "MAX_MARCH": MAX_MARCH,
             "ADJ_MIN_COS": repr(float(grazing_cos)),
@@ -80,11 +77,16 @@ class InterfaceTracer:
         self.upload_field()
 
     def upload_field(self) -> None:
-        """Copy the field's current parameters to the device (after the field changed)."""
+        """Copy the field's current parameters to the device (after the field changed): fd its
+        data, fp the march's tolerances and the geometry (kernels_cl/interface.cl)."""
         cl = self.runtime.cl
         mf = cl.mem_flags
+        march = [self.tol, self.offset, self.field.min_step()]
+        fp = self.field.kernel_params(self.box, march).astype(self.dtype)
         data = np.append(self.field.data(), 0.0).astype(self.dtype)
-        self._fd = cl.Buffer(self.runtime.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data)
+        ctx = self.runtime.context
+        self._fp = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=fp)
+        self._fd = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=data)
         self.lip = self.dtype(self.field.lipschitz())
 
     def columns(self, a, what: str) -> list[np.ndarray]:
@@ -96,15 +98,22 @@ class InterfaceTracer:
         return [np.ascontiguousarray(a[:, k], self.dtype) for k in range(3)]
 
     def launch(self, kernel, n: int, args, queue=None):
-        """Run `kernel` over n rays (fd, lip, n first), copying Out arrays back; returns the
-        Launch, unfinished."""
+        """Run `kernel` over n rays (fp, fd, lip, n first), copying Out arrays back; returns
+        the Launch, unfinished."""
         cl = self.runtime.cl
         q = queue or self.runtime.queue
         bufs, back = device_args(self.runtime, args)
         items = max(n, 1)
         local = work_group_size(items, self.runtime)
         kernel(
-            q, (items,), None if local is None else (local,), self._fd, self.lip, np.int32(n), *bufs
+            q,
+            (items,),
+            None if local is None else (local,),
+            self._fp,
+            self._fd,
+            self.lip,
+            np.int32(n),
+            *bufs,
         )
         self.launch_bytes = sum(b.size for b in bufs if isinstance(b, cl.MemoryObject))
         return Launch(q, [cl.enqueue_copy(q, a, b, is_blocking=False) for a, b in back])
@@ -146,7 +155,7 @@ class InterfaceTracer:
         mf, ctx = cl.mem_flags, self.runtime.context
         bufs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a) for a in x]
         obufs = [cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes) for a in outs]
-        self.kernels.interface_eval(q, (n,), None, self._fd, np.int32(n), *bufs, *obufs)
+        self.kernels.interface_eval(q, (n,), None, self._fp, self._fd, np.int32(n), *bufs, *obufs)
         for a, b in zip(outs, obufs):
             cl.enqueue_copy(q, a, b)
         q.finish()

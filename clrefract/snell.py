@@ -345,10 +345,11 @@ class SnellRenderer:
         self.dtype = self.runtime.real_dtype(precision)
 
     def _build(self, shape_source: str, defines: dict, params: np.ndarray) -> None:
-        """The shared event-loop kernel (snell_trace.cl) over one shape's hit function."""
+        """The shared event-loop kernel (snell_trace.cl) over one shape's hit function; the
+        box follows the shape's parameters in sp (common.h's geometry)."""
         self.kernels = self.runtime.build(
             ["common.h", "snell_common.h", shape_source, "snell_trace.cl"],
-            {**defines, **self.box.defines()},
+            {**defines, "GEO_AT": len(params)},
             self.precision,
         )
         self._kernel = self.kernels.snell_trace
@@ -356,7 +357,7 @@ class SnellRenderer:
         self._sp = cl.Buffer(
             self.runtime.context,
             cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-            hostbuf=np.ascontiguousarray(params, dtype=self.dtype),
+            hostbuf=np.concatenate([params, self.box.geometry()]).astype(self.dtype),
         )
 
     def _inside(self, pts: np.ndarray) -> np.ndarray:

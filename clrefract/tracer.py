@@ -215,8 +215,9 @@ class Tracer:
         centre = 0.5 * (np.asarray(box.lo, float) + np.asarray(box.hi, float))
         shiftable = hasattr(field, "params_shifted") and not adjoint
         self.offset = centre if shiftable else np.zeros(3)
-        kbox = Box(tuple(box.lo - self.offset), tuple(box.hi - self.offset), box.margin)
-        defines = {**field.defines(), **kbox.defines(), "LANES": self.lanes}
+        # the box as the kernels see it (fp's geometry, uploaded with the parameters)
+        self.kbox = kbox = Box(tuple(box.lo - self.offset), tuple(box.hi - self.offset), box.margin)
+        defines = {**field.defines(), "GEO_AT": len(field.params()), "LANES": self.lanes}
         defines[f"INTEGRATOR_{integrator.upper()}"] = 1
         # Kahan sums where rounding may pass 2^-22: u (sqrt(cap) + max|x| / step) > 2^-22
         finest = float(step) * (1e-4 if tol is not None else 1.0)  # dopri5's floor: 1e-4 step
@@ -351,14 +352,15 @@ class Tracer:
         return cl.Buffer(self.runtime.context, cl.mem_flags.READ_WRITE, nbytes)
 
     def upload_field(self) -> None:
-        """Copy the field's current parameters to the device (after the field changed)."""
+        """Copy the field's current parameters, and the geometry after them, to the device
+        (after the field changed)."""
         cl = self.runtime.cl
         mf = cl.mem_flags
         ctx = self.runtime.context
         self._fp = cl.Buffer(
             ctx,
             mf.READ_ONLY | mf.COPY_HOST_PTR,
-            hostbuf=self._real(np.append(self._field_params(), 0.0)),
+            hostbuf=self._real(self.field.kernel_params(self.kbox, self._field_params())),
         )
         self._fd = cl.Buffer(
             ctx,

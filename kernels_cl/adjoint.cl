@@ -179,7 +179,7 @@ ADJOINT_RAYS_KERNEL {
         if (!ANY(active))
             break;
         realv sp = sqrt(vx * vx + vy * vy + vz * vz);
-        realv L = empty_jump(occ, x, y, z, -vx / sp, -vy / sp, -vz / sp);
+        realv L = empty_jump(fp, occ, x, y, z, -vx / sp, -vy / sp, -vz / sp);
         realv nj = fmin(floor(L / (sp * h)), s);
         maskv fly = active && nj > RV(0);
         realv back = -nj * h;

@@ -52,10 +52,33 @@ typedef CAT(int, LANES) maskv;
 #define RV(c) ((realv)(c))
 
 /* Every field defines field_eval(FIELD_PARAMS, x, y, z, &gx, &gy, &gz) -> eta, with
- * scalar parameters in fp and bulk data (grid values, tables, weights) in fd. The box
- * (BOX_LO_X .. BOX_HI_Z) and the window MARGIN come from the build. */
+ * scalar parameters in fp and bulk data (grid values, tables, weights) in fd. */
 #define FIELD_PARAMS __global const REAL *restrict fp, __global const REAL *restrict fd
 #define FIELD_ARGS fp, fd
+
+/* The geometry is data, not build defines, so that one program serves every box and grid
+ * shape: fp ends with lo (x y z), hi (x y z), the window margin, the node counts of a field's
+ * grid (0 without one), its node spacing and their inverses and the margin's, from fp[GEO_AT]
+ * (GEO_AT from the build: the number of the field's own parameters; clrefract/fields/base.py
+ * Box.geometry). The host derives the spacings and inverses in float64: an evaluation that
+ * divided for them ran a tenth slower. Helpers that read the geometry take fp. */
+#define BOX_LO_X (fp[GEO_AT])
+#define BOX_LO_Y (fp[GEO_AT + 1])
+#define BOX_LO_Z (fp[GEO_AT + 2])
+#define BOX_HI_X (fp[GEO_AT + 3])
+#define BOX_HI_Y (fp[GEO_AT + 4])
+#define BOX_HI_Z (fp[GEO_AT + 5])
+#define MARGIN (fp[GEO_AT + 6])
+#define VOX_NX ((int)fp[GEO_AT + 7])
+#define VOX_NY ((int)fp[GEO_AT + 8])
+#define VOX_NZ ((int)fp[GEO_AT + 9])
+#define VOX_HX (fp[GEO_AT + 10])
+#define VOX_HY (fp[GEO_AT + 11])
+#define VOX_HZ (fp[GEO_AT + 12])
+#define VOX_IHX (fp[GEO_AT + 13])
+#define VOX_IHY (fp[GEO_AT + 14])
+#define VOX_IHZ (fp[GEO_AT + 15])
+#define INV_MARGIN (fp[GEO_AT + 16])
 
 /* Status codes shared with the host (clrefract.tracer.Status). */
 #define ST_EXITED 0
@@ -75,26 +98,6 @@ inline realv smoother_d(realv t) {
 inline realv smoother_dd(realv t) {
     realv in = SEL(RV(0), RV(1), t > RV(0) && t < RV(1));
     return in * RV(60) * t * (RV(1) - t) * (RV(1) - RV(2) * t);
-}
-
-/* Box window: 0 within MARGIN of a wall, 1 beyond 2 MARGIN; learned fields are 1 + W (g - 1)
- * so that rays leave the box in straight lines. Returns W and its gradient. */
-inline realv box_window(realv x, realv y, realv z, realv *wx, realv *wy, realv *wz) {
-    const REAL m = (REAL)MARGIN;
-    realv dx0 = (x - RV(BOX_LO_X)) / m - RV(1), dx1 = (RV(BOX_HI_X) - x) / m - RV(1);
-    realv dy0 = (y - RV(BOX_LO_Y)) / m - RV(1), dy1 = (RV(BOX_HI_Y) - y) / m - RV(1);
-    realv dz0 = (z - RV(BOX_LO_Z)) / m - RV(1), dz1 = (RV(BOX_HI_Z) - z) / m - RV(1);
-    realv sx0 = smoother(dx0), sx1 = smoother(dx1);
-    realv sy0 = smoother(dy0), sy1 = smoother(dy1);
-    realv sz0 = smoother(dz0), sz1 = smoother(dz1);
-    realv ax = sx0 * sx1, ay = sy0 * sy1, az = sz0 * sz1;
-    realv gax = (smoother_d(dx0) * sx1 - sx0 * smoother_d(dx1)) / m;
-    realv gay = (smoother_d(dy0) * sy1 - sy0 * smoother_d(dy1)) / m;
-    realv gaz = (smoother_d(dz0) * sz1 - sz0 * smoother_d(dz1)) / m;
-    *wx = gax * ay * az;
-    *wy = ax * gay * az;
-    *wz = ax * ay * gaz;
-    return ax * ay * az;
 }
 
 /* Float atomic add on global memory: the float-atomics extension where the build enables it
@@ -136,31 +139,58 @@ inline void atomic_add_real(volatile __global REAL *p, REAL v) {
 }
 #endif
 
+/* The box window needs the geometry; programs without a box (Adam, the driver probe, the
+ * volume baseline) build without GEO_AT. */
+#ifdef GEO_AT
+/* Box window: 0 within MARGIN of a wall, 1 beyond 2 MARGIN; learned fields are 1 + W (g - 1)
+ * so that rays leave the box in straight lines. Returns W and its gradient. */
+inline realv box_window(__global const REAL *restrict fp, realv x, realv y, realv z, realv *wx,
+                        realv *wy, realv *wz) {
+    const REAL im = INV_MARGIN;
+    realv dx0 = (x - RV(BOX_LO_X)) * im - RV(1), dx1 = (RV(BOX_HI_X) - x) * im - RV(1);
+    realv dy0 = (y - RV(BOX_LO_Y)) * im - RV(1), dy1 = (RV(BOX_HI_Y) - y) * im - RV(1);
+    realv dz0 = (z - RV(BOX_LO_Z)) * im - RV(1), dz1 = (RV(BOX_HI_Z) - z) * im - RV(1);
+    realv sx0 = smoother(dx0), sx1 = smoother(dx1);
+    realv sy0 = smoother(dy0), sy1 = smoother(dy1);
+    realv sz0 = smoother(dz0), sz1 = smoother(dz1);
+    realv ax = sx0 * sx1, ay = sy0 * sy1, az = sz0 * sz1;
+    realv gax = (smoother_d(dx0) * sx1 - sx0 * smoother_d(dx1)) * im;
+    realv gay = (smoother_d(dy0) * sy1 - sy0 * smoother_d(dy1)) * im;
+    realv gaz = (smoother_d(dz0) * sz1 - sz0 * smoother_d(dz1)) * im;
+    *wx = gax * ay * az;
+    *wy = ax * gay * az;
+    *wz = ax * ay * gaz;
+    return ax * ay * az;
+}
+
 /* Box window along one axis, a(x) = s(d0) s(d1) with d0 = (x - lo)/m - 1,
- * d1 = (hi - x)/m - 1, with its first and second derivatives (for the backward pass). */
-inline __attribute__((always_inline)) realv window_axis_v(realv x, REAL lo, REAL hi, realv *da,
-                                                          realv *dda) {
-    const REAL m = (REAL)MARGIN;
-    realv d0 = (x - RV(lo)) / RV(m) - RV(1), d1 = (RV(hi) - x) / RV(m) - RV(1);
+ * d1 = (hi - x)/m - 1, with its first and second derivatives (for the backward pass); im is
+ * 1/m. */
+inline __attribute__((always_inline)) realv window_axis_v(realv x, REAL lo, REAL hi, REAL im,
+                                                          realv *da, realv *dda) {
+    realv d0 = (x - RV(lo)) * im - RV(1), d1 = (RV(hi) - x) * im - RV(1);
     realv s0 = smoother(d0), s1 = smoother(d1);
     realv p0 = smoother_d(d0), p1 = smoother_d(d1);
     realv in0 = SEL(RV(0), RV(1), d0 > RV(0) && d0 < RV(1));
     realv in1 = SEL(RV(0), RV(1), d1 > RV(0) && d1 < RV(1));
     realv q0 = in0 * RV(60) * d0 * (RV(1) - d0) * (RV(1) - RV(2) * d0);
     realv q1 = in1 * RV(60) * d1 * (RV(1) - d1) * (RV(1) - RV(2) * d1);
-    *da = (p0 * s1 - s0 * p1) / RV(m);
-    *dda = (q0 * s1 - RV(2) * p0 * p1 + s0 * q1) / RV(m * m);
+    *da = (p0 * s1 - s0 * p1) * im;
+    *dda = (q0 * s1 - RV(2) * p0 * p1 + s0 * q1) * (im * im);
     return s0 * s1;
 }
 /* Box window W with its gradient g and Hessian H (xx yy zz xy xz yz). */
-inline __attribute__((always_inline)) realv window_hess_v(realv x, realv y, realv z, realv *g,
+inline __attribute__((always_inline)) realv window_hess_v(__global const REAL *restrict fp,
+                                                          realv x, realv y, realv z, realv *g,
                                                           realv *H) {
     realv dax, ddax, day, dday, daz, ddaz;
-    realv ax = window_axis_v(x, (REAL)BOX_LO_X, (REAL)BOX_HI_X, &dax, &ddax);
-    realv ay = window_axis_v(y, (REAL)BOX_LO_Y, (REAL)BOX_HI_Y, &day, &dday);
-    realv az = window_axis_v(z, (REAL)BOX_LO_Z, (REAL)BOX_HI_Z, &daz, &ddaz);
+    const REAL im = INV_MARGIN;
+    realv ax = window_axis_v(x, BOX_LO_X, BOX_HI_X, im, &dax, &ddax);
+    realv ay = window_axis_v(y, BOX_LO_Y, BOX_HI_Y, im, &day, &dday);
+    realv az = window_axis_v(z, BOX_LO_Z, BOX_HI_Z, im, &daz, &ddaz);
     g[0] = dax * ay * az; g[1] = ax * day * az; g[2] = ax * ay * daz;
     H[0] = ddax * ay * az; H[1] = ax * dday * az; H[2] = ax * ay * ddaz;
     H[3] = dax * day * az; H[4] = dax * ay * daz; H[5] = ax * day * daz;
     return ax * ay * az;
 }
+#endif

@@ -3,7 +3,8 @@
  *
  * fd: tables (HG_LEVELS x T x HG_FEATURES, C order, T = 2^HG_LOG2T) from offset 0, then the
  *     MLP from HG_MLP_OFFSET, layer by layer W (out x in, row-major) then b (out).
- * fp: eta_max, N_0 .. N_{L-1}, dense_0 .. dense_{L-1} (1 where the level is directly indexed).
+ * fp: eta_max, N_0 .. N_{L-1}, dense_0 .. dense_{L-1} (1 where the level is directly indexed),
+ *     then the geometry (common.h).
  *
  * Encoding: u = (x - lo) / size clamped to [0,1]^3, p = u N_l, cell c = min(floor p, N_l - 1),
  * t = p - c, corner weights 1 - s(t), s(t) with s(t) = 3t^2 - 2t^3 (HG_SMOOTH) or t. Vertex
@@ -138,8 +139,8 @@ HG_INLINE void hg_scatter(__global REAL *grad, const int l, const uint *idx, con
 /* Box coordinates of (x, y, z) in [0, 1] (cx cy cz), and 1 where they were not clamped
  * (ix iy iz): the derivative of a clamped coordinate is 0. */
 #define HG_NORMALISE                                                                         \
-    const REAL sx_ = (REAL)BOX_HI_X - (REAL)BOX_LO_X, sy_ = (REAL)BOX_HI_Y - (REAL)BOX_LO_Y, \
-               sz_ = (REAL)BOX_HI_Z - (REAL)BOX_LO_Z;                                        \
+    const REAL sx_ = BOX_HI_X - BOX_LO_X, sy_ = BOX_HI_Y - BOX_LO_Y,                         \
+               sz_ = BOX_HI_Z - BOX_LO_Z;                                                    \
     realv ux = (x - RV(BOX_LO_X)) / sx_, uy = (y - RV(BOX_LO_Y)) / sy_,                      \
           uz = (z - RV(BOX_LO_Z)) / sz_;                                                     \
     realv cx = clamp(ux, RV(0), RV(1)), cy = clamp(uy, RV(0), RV(1)),                        \
@@ -152,8 +153,7 @@ HG_INLINE void hg_scatter(__global REAL *grad, const int l, const uint *idx, con
 HG_INLINE void hg_cell(FIELD_PARAMS, const int l, realv cx, realv cy, realv cz, realv ix,
                        realv iy, realv iz, uint *idx, realv *sx, realv *sy, realv *sz,
                        realv *dsx, realv *dsy, realv *dsz, realv *ddx, realv *ddy, realv *ddz) {
-    const REAL sx_ = (REAL)BOX_HI_X - (REAL)BOX_LO_X, sy_ = (REAL)BOX_HI_Y - (REAL)BOX_LO_Y,
-               sz_ = (REAL)BOX_HI_Z - (REAL)BOX_LO_Z;
+    const REAL sx_ = BOX_HI_X - BOX_LO_X, sy_ = BOX_HI_Y - BOX_LO_Y, sz_ = BOX_HI_Z - BOX_LO_Z;
     const REAL n = fp[1 + l];
     hg_uintv i = hg_axis(cx, ix, n, n / sx_, sx, dsx, ddx);
     hg_uintv j = hg_axis(cy, iy, n, n / sy_, sy, dsy, ddy);
@@ -372,7 +372,7 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
     realv dg, dg2;
     realv g1 = hg_output(o, k, &dg, &dg2);
     realv wx, wy, wz;
-    realv w = box_window(x, y, z, &wx, &wy, &wz);
+    realv w = box_window(fp, x, y, z, &wx, &wy, &wz);
     *gx = wx * g1 + w * dg * ox;
     *gy = wy * g1 + w * dg * oy;
     *gz = wz * g1 + w * dg * oz;
@@ -409,7 +409,7 @@ inline realv field_eval_region(FIELD_PARAMS, realv x, realv y, realv z, realv re
     realv g1 = RV(k) * SEL(band * p, RV(1), reg > RV(0.5));
     realv dg = RV(k * (REAL)0.5) * band * dp;
     realv wx, wy, wz;
-    realv w = box_window(x, y, z, &wx, &wy, &wz);
+    realv w = box_window(fp, x, y, z, &wx, &wy, &wz);
     *gx = wx * g1 + w * dg * ox;
     *gy = wy * g1 + w * dg * oy;
     *gz = wz * g1 + w * dg * oz;

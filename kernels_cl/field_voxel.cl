@@ -3,7 +3,7 @@
  * Node-centred samples: VOX_NX x VOX_NY x VOX_NZ nodes, node (0,0,0) on the box's low corner
  * and node (n-1) on its high corner along each axis (spacing = size / (n - 1)). The value of
  * node (i, j, k) is fd[(i * VOX_NY + j) * VOX_NZ + k] (NumPy C order of values[i, j, k]).
- * fp is unused.
+ * fp holds only the geometry: the box and the node counts (common.h).
  *
  * g(x) interpolates the nodes of the cell holding x with weights w0 = 1 - s(t), w1 = s(t) per
  * axis, t in [0, 1] the position inside the cell: s(t) = t (trilinear, C0) or, with
@@ -17,8 +17,8 @@
  *
  * VOX_LEVELSET (with VOX_BSPLINE): the spline g is a signed distance phi (mm, negative
  * inside) and fd[VOX_NODES] the index n inside; g - 1 becomes F(phi) = (n - 1) S(1/2 -
- * phi / LS_WIDTH), S the C2 quintic smoothstep: a surface as sharp as LS_WIDTH whatever the
- * grid spacing, the shape of the analytic solids (fields/levelset.py).
+ * phi / LS_WIDTH), S the C2 quintic smoothstep: a surface as sharp as LS_WIDTH (fp[0])
+ * whatever the grid spacing, the shape of the analytic solids (fields/levelset.py).
  *
  * Trilinear and smoothstep gather scalar: field_eval spills its LANES points to private
  * arrays, interpolates each with voxel_interp1 and loads the results back; with LANES == 1 it
@@ -38,9 +38,11 @@
 #define VOX_NODES (VOX_NX * VOX_NY * VOX_NZ)
 
 #if VOX_LEVELSET
+#define LS_WIDTH (fp[0])
 /* F(phi) = (n - 1) S(1/2 - phi / w), with S, dS/dphi and d2F/dphi2. */
-inline realv levelset_map(realv phi, REAL n, realv *S, realv *dS, realv *F2) {
-    const REAL w = (REAL)LS_WIDTH;
+inline realv levelset_map(__global const REAL *restrict fp, realv phi, REAL n, realv *S,
+                          realv *dS, realv *F2) {
+    const REAL w = LS_WIDTH;
     realv s = RV(0.5) - phi / RV(w);
     *S = smoother(s);
     *dS = -smoother_d(s) / RV(w);
@@ -52,13 +54,24 @@ inline realv levelset_map(realv phi, REAL n, realv *S, realv *dS, realv *F2) {
 /* PoCL may crash on helpers that take private arrays by pointer unless they are inlined */
 #define VOX_INLINE inline __attribute__((always_inline))
 
-#define VOX_HX (((REAL)BOX_HI_X - (REAL)BOX_LO_X) / (REAL)(VOX_NX - 1))
-#define VOX_HY (((REAL)BOX_HI_Y - (REAL)BOX_LO_Y) / (REAL)(VOX_NY - 1))
-#define VOX_HZ (((REAL)BOX_HI_Z - (REAL)BOX_LO_Z) / (REAL)(VOX_NZ - 1))
+/* The grid's low corner, node spacing (and inverse) and node counts (common.h), read from fp
+ * once for all the lanes of an evaluation: read per lane, they slowed trilinear tracing. */
+typedef struct {
+    REAL lo[3], h[3], ih[3];
+    int n[3];
+} vox_geo;
 
-/* Cell along one axis: index c in [0, n-2], weight s of the high node and ds = d s / d x.
- * A coordinate outside the grid is clamped onto it, so there ds = 0. */
-inline int voxel_axis(REAL x, REAL lo, REAL h, int n, REAL *s, REAL *ds) {
+VOX_INLINE vox_geo vox_geometry(__global const REAL *restrict fp) {
+    vox_geo g = {{BOX_LO_X, BOX_LO_Y, BOX_LO_Z},
+                 {VOX_HX, VOX_HY, VOX_HZ},
+                 {VOX_IHX, VOX_IHY, VOX_IHZ},
+                 {VOX_NX, VOX_NY, VOX_NZ}};
+    return g;
+}
+
+/* Cell along one axis: index c in [0, n-2], weight s of the high node and ds = d s / d x
+ * (ih = 1 / h). A coordinate outside the grid is clamped onto it, so there ds = 0. */
+inline int voxel_axis(REAL x, REAL lo, REAL h, REAL ih, int n, REAL *s, REAL *ds) {
     REAL u = (x - lo) / h;
     REAL uc = clamp(u, (REAL)0, (REAL)(n - 1));
     int c = clamp((int)floor(uc), 0, n - 2); /* int clamp also guards against NaN */
@@ -66,22 +79,23 @@ inline int voxel_axis(REAL x, REAL lo, REAL h, int n, REAL *s, REAL *ds) {
     REAL inside = (u == uc) ? (REAL)1 : (REAL)0;
 #if VOX_SMOOTH
     *s = t * t * ((REAL)3 - (REAL)2 * t);
-    *ds = inside * (REAL)6 * t * ((REAL)1 - t) / h;
+    *ds = inside * (REAL)6 * t * ((REAL)1 - t) * ih;
 #else
     *s = t;
-    *ds = inside / h;
+    *ds = inside * ih;
 #endif
     return c;
 }
 
 /* The interpolant g at one point and its gradient (g[0..2]); no window. */
-inline REAL voxel_interp1(__global const REAL *restrict fd, REAL x, REAL y, REAL z, REAL *g) {
+VOX_INLINE REAL voxel_interp1(__global const REAL *restrict fd, vox_geo G, REAL x, REAL y, REAL z,
+                              REAL *g) {
     REAL sx, sy, sz, dsx, dsy, dsz;
-    int i = voxel_axis(x, (REAL)BOX_LO_X, VOX_HX, VOX_NX, &sx, &dsx);
-    int j = voxel_axis(y, (REAL)BOX_LO_Y, VOX_HY, VOX_NY, &sy, &dsy);
-    int k = voxel_axis(z, (REAL)BOX_LO_Z, VOX_HZ, VOX_NZ, &sz, &dsz);
-    __global const REAL *p = fd + (i * VOX_NY + j) * VOX_NZ + k;
-    const int di = VOX_NY * VOX_NZ, dj = VOX_NZ;
+    int i = voxel_axis(x, G.lo[0], G.h[0], G.ih[0], G.n[0], &sx, &dsx);
+    int j = voxel_axis(y, G.lo[1], G.h[1], G.ih[1], G.n[1], &sy, &dsy);
+    int k = voxel_axis(z, G.lo[2], G.h[2], G.ih[2], G.n[2], &sz, &dsz);
+    __global const REAL *p = fd + (i * G.n[1] + j) * G.n[2] + k;
+    const int di = G.n[1] * G.n[2], dj = G.n[2];
     /* the 8 corners v[a][b][c], a b c = low/high node along x y z */
     REAL v000 = p[0], v001 = p[1], v010 = p[dj], v011 = p[dj + 1];
     REAL v100 = p[di], v101 = p[di + 1], v110 = p[di + dj], v111 = p[di + dj + 1];
@@ -111,14 +125,15 @@ typedef CAT(REAL, 4) vox_real4;
 /* One axis for all lanes: cell c in [0, n-2] (a NaN coordinate gives 0), uniform cubic
  * B-spline weights w[4] of the nodes c-1 .. c+2 at t = u - c (voxel.py's bspline_weights),
  * d w/dx and d2 w/dx2 (zero where the coordinate is clamped onto the grid). */
-VOX_INLINE intv vox_axis4v(realv x, REAL lo, REAL h, int n, realv *w, realv *d, realv *dd) {
+VOX_INLINE intv vox_axis4v(realv x, REAL lo, REAL h, REAL ih, int n, realv *w, realv *d,
+                           realv *dd) {
     realv u = (x - RV(lo)) / RV(h);
     realv uc = clamp(u, RV(0), RV(n - 1));
     intv c = clamp(VOX_INT_SAT(floor(uc)), 0, n - 2);
     realv t = uc - TO_REALV(c);
     const REAL r6 = (REAL)1 / (REAL)6;
     realv s = RV(1) - t, t2 = t * t, t3 = t2 * t;
-    realv d1 = SEL(RV(0), RV(1) / RV(h), u == uc), d2 = d1 / RV(h);
+    realv d1 = SEL(RV(0), RV(ih), u == uc), d2 = d1 * RV(ih);
     w[0] = s * s * s * r6;
     w[1] = (RV(3) * t3 - RV(6) * t2 + RV(4)) * r6;
     w[2] = (RV(-3) * t3 + RV(3) * t2 + RV(3) * t + RV(1)) * r6;
@@ -140,18 +155,15 @@ VOX_INLINE void vox_offsets(intv c, int n, int stride, int (*o)[LANES]) {
         VSTORE_INT(clamp(c - 1 + a, 0, n - 1) * stride, 0, o[a]);
 }
 
-/* z for all lanes. The 4 nodes of a row are contiguous in fd: with 4 or more nodes along z a
- * row is one vector read from kb = clamp(k - 1, 0, n - 4) (oz[0][l] = kb), and the weights
- * of taps clamped onto the same node are folded together (at most one node off: (w0 + w1,
- * w2, w3, 0) in the first cell, (0, w0, w1, w2 + w3) in the last). With fewer nodes oz[c][l]
- * are the 4 clamped taps, read one by one. Returns the cell k. */
-#if VOX_NZ >= 4
-#define VOX_ZVEC 1
-#else
-#define VOX_ZVEC 0
-#endif
-VOX_INLINE intv vox_axis4zv(realv z, int (*oz)[LANES], realv *w, realv *d, realv *dd) {
-    intv k = vox_axis4v(z, (REAL)BOX_LO_Z, VOX_HZ, VOX_NZ, w, d, dd);
+/* z for all lanes. The 4 nodes of a row are contiguous in fd: with 4 or more nodes along z
+ * (VOX_ZVEC, from the build) a row is one vector read from kb = clamp(k - 1, 0, n - 4)
+ * (oz[0][l] = kb), and the weights of taps clamped onto the same node are folded together (at
+ * most one node off: (w0 + w1, w2, w3, 0) in the first cell, (0, w0, w1, w2 + w3) in the
+ * last). With fewer nodes oz[c][l] are the 4 clamped taps, read one by one. Returns the cell
+ * k. */
+VOX_INLINE intv vox_axis4zv(__global const REAL *restrict fp, realv z, int (*oz)[LANES], realv *w,
+                            realv *d, realv *dd) {
+    intv k = vox_axis4v(z, BOX_LO_Z, VOX_HZ, VOX_IHZ, VOX_NZ, w, d, dd);
 #if VOX_ZVEC
     intv kb = clamp(k - 1, 0, VOX_NZ - 4);
     realv sh = TO_REALV(k - 1 - kb);
@@ -193,10 +205,11 @@ VOX_INLINE realv vox_spline(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, 
                             realv *gz) {
     realv wx[4], dx[4], ex[4], wy[4], dy[4], ey[4], wz[4], dz[4], ez[4];
     int ox[4][LANES], oy[4][LANES], oz[4][LANES];
-    vox_offsets(vox_axis4v(x, (REAL)BOX_LO_X, VOX_HX, VOX_NX, wx, dx, ex), VOX_NX,
+    vox_offsets(vox_axis4v(x, BOX_LO_X, VOX_HX, VOX_IHX, VOX_NX, wx, dx, ex), VOX_NX,
                 VOX_NY * VOX_NZ, ox);
-    vox_offsets(vox_axis4v(y, (REAL)BOX_LO_Y, VOX_HY, VOX_NY, wy, dy, ey), VOX_NY, VOX_NZ, oy);
-    vox_axis4zv(z, oz, wz, dz, ez);
+    vox_offsets(vox_axis4v(y, BOX_LO_Y, VOX_HY, VOX_IHY, VOX_NY, wy, dy, ey), VOX_NY, VOX_NZ,
+                oy);
+    vox_axis4zv(fp, z, oz, wz, dz, ez);
     realv g = RV(0), dgx = RV(0), dgy = RV(0), dgz = RV(0);
     for (int a = 0; a < 4; ++a) {
         realv y0 = RV(0), y1 = RV(0), y2 = RV(0);
@@ -227,7 +240,7 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
 #if VOX_LEVELSET
     const REAL n = fd[VOX_NODES];
     realv S, dS, F2;
-    realv g1 = levelset_map(g, n, &S, &dS, &F2), f1 = RV(n - (REAL)1) * dS;
+    realv g1 = levelset_map(fp, g, n, &S, &dS, &F2), f1 = RV(n - (REAL)1) * dS;
     dgx *= f1;
     dgy *= f1;
     dgz *= f1;
@@ -235,7 +248,7 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
     realv g1 = g - RV(1);
 #endif
     realv vx, vy, vz;
-    realv w = box_window(x, y, z, &vx, &vy, &vz);
+    realv w = box_window(fp, x, y, z, &vx, &vy, &vz);
     *gx = vx * g1 + w * dgx;
     *gy = vy * g1 + w * dgy;
     *gz = vz * g1 + w * dgz;
@@ -247,8 +260,8 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
  * adjoints do not differentiate step lengths). The smoothstep's higher derivatives jump at
  * the band edges phi = -+w/2, kinks like the analytic solids'; steps land on them. */
 #define FIELD_INTERFACE 1
-#define INTERFACE_LO (-(REAL)0.5 * (REAL)LS_WIDTH)
-#define INTERFACE_HI ((REAL)0.5 * (REAL)LS_WIDTH)
+#define INTERFACE_LO (-(REAL)0.5 * LS_WIDTH)
+#define INTERFACE_HI ((REAL)0.5 * LS_WIDTH)
 inline realv field_interface(FIELD_PARAMS, realv x, realv y, realv z) {
     realv gx, gy, gz;
     return vox_spline(FIELD_ARGS, x, y, z, &gx, &gy, &gz);
@@ -259,7 +272,7 @@ inline realv field_eval_region(FIELD_PARAMS, realv x, realv y, realv z, realv re
                                realv *gy, realv *gz) {
     realv dgx, dgy, dgz;
     realv phi = vox_spline(FIELD_ARGS, x, y, z, &dgx, &dgy, &dgz);
-    const REAL w = (REAL)LS_WIDTH, dn = fd[VOX_NODES] - (REAL)1;
+    const REAL w = LS_WIDTH, dn = fd[VOX_NODES] - (REAL)1;
     realv pos = SEL(SEL(RV(0), RV(1), phi > RV(0.5 * w)), RV(-1), phi < RV(-0.5 * w));
     realv reg = SEL(region, pos, region < RV(-1.5));
     realv t = RV(0.5) - phi / RV(w);
@@ -269,7 +282,7 @@ inline realv field_eval_region(FIELD_PARAMS, realv x, realv y, realv z, realv re
     realv g1 = RV(dn) * SEL(band * p, RV(1), reg < RV(-0.5));
     realv f1 = -RV(dn) * band * dp / RV(w);
     realv vx, vy, vz;
-    realv wn = box_window(x, y, z, &vx, &vy, &vz);
+    realv wn = box_window(fp, x, y, z, &vx, &vy, &vz);
     *gx = vx * g1 + wn * f1 * dgx;
     *gy = vy * g1 + wn * f1 * dgy;
     *gz = vz * g1 + wn * f1 * dgz;
@@ -283,16 +296,17 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
     VSTORE(x, 0, xs);
     VSTORE(y, 0, ys);
     VSTORE(z, 0, zs);
+    const vox_geo G = vox_geometry(fp);
     for (int l = 0; l < LANES; ++l) {
         REAL d[3];
-        gs[l] = voxel_interp1(fd, xs[l], ys[l], zs[l], d);
+        gs[l] = voxel_interp1(fd, G, xs[l], ys[l], zs[l], d);
         dxs[l] = d[0];
         dys[l] = d[1];
         dzs[l] = d[2];
     }
     realv g1 = VLOAD(0, gs) - RV(1);
     realv wx, wy, wz;
-    realv w = box_window(x, y, z, &wx, &wy, &wz);
+    realv w = box_window(fp, x, y, z, &wx, &wy, &wz);
     *gx = wx * g1 + w * VLOAD(0, dxs);
     *gy = wy * g1 + w * VLOAD(0, dys);
     *gz = wz * g1 + w * VLOAD(0, dzs);

@@ -318,7 +318,7 @@ HG_ADJ_FN realv hg_point_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv 
     realv G1, G2;
     realv G = hg_output(o, k, &G1, &G2);
     realv gW[3], HW[6];
-    realv Wn = window_hess_v(x, y, z, gW, HW);
+    realv Wn = window_hess_v(fp, x, y, z, gW, HW);
     realv gWx = gW[0], gWy = gW[1], gWz = gW[2];
     realv Hxx = HW[0], Hyy = HW[1], Hzz = HW[2], Hxy = HW[3], Hxz = HW[4], Hyz = HW[5];
     realv eta = RV(1) + Wn * G;

@@ -14,8 +14,9 @@
  * Providers of phi (one per build): SDF_GRID, the tricubic B-spline on the node grid of
  * fields/voxel.py (VOX_NX.. nodes over the box, fd[0..SDF_NODES-1] in C order, eta =
  * fd[SDF_NODES]); SDF_SPHERE, a sphere fd = (cx, cy, cz, R, eta), the closed-form oracle.
- * Needs common.h (REAL, atomic_add_real, ST_*), snell_common.h (real3, refract_or_reflect,
- * box_exit_distance) and the box defines. One ray per work-item: the loops are data
+ * fp: TOL, OFFSET and MIN_STEP (clrefract/interface.py), then the box and the node counts
+ * (common.h, GEO_AT 3). Needs common.h (REAL, atomic_add_real, ST_*) and snell_common.h
+ * (real3, refract_or_reflect, box_exit_distance). One ray per work-item: the loops are data
  * dependent.
  */
 
@@ -28,23 +29,23 @@
 #ifndef MAX_MARCH
 #define MAX_MARCH 4096
 #endif
+#define TOL (fp[0])      /* the crossing's tolerance along the ray, mm */
+#define OFFSET (fp[1])   /* the offset off the surface after an event, mm */
+#define MIN_STEP (fp[2]) /* the march's shortest step, mm */
 
 #if SDF_GRID
 #define SDF_NODES (VOX_NX * VOX_NY * VOX_NZ)
 #define SDF_ETA(fd) ((fd)[SDF_NODES])
-#define SDF_HX (((REAL)BOX_HI_X - (REAL)BOX_LO_X) / (REAL)(VOX_NX - 1))
-#define SDF_HY (((REAL)BOX_HI_Y - (REAL)BOX_LO_Y) / (REAL)(VOX_NY - 1))
-#define SDF_HZ (((REAL)BOX_HI_Z - (REAL)BOX_LO_Z) / (REAL)(VOX_NZ - 1))
 
 /* One axis: cell c, the uniform cubic B-spline weights of nodes c-1 .. c+2 and their first
  * and second derivatives in x (zero where x is clamped onto the grid), as voxel.py's _axis4. */
-SDF_INLINE int sdf_axis(REAL x, REAL lo, REAL h, int n, REAL *w, REAL *d, REAL *dd) {
+SDF_INLINE int sdf_axis(REAL x, REAL lo, REAL h, REAL ih, int n, REAL *w, REAL *d, REAL *dd) {
     REAL u = (x - lo) / h;
     REAL uc = clamp(u, (REAL)0, (REAL)(n - 1));
     int c = clamp((int)floor(uc), 0, n - 2);
     REAL t = uc - (REAL)c, s = (REAL)1 - t, t2 = t * t, t3 = t2 * t;
     const REAL r6 = (REAL)1 / (REAL)6;
-    REAL d1 = u == uc ? (REAL)1 / h : (REAL)0, d2 = d1 / h;
+    REAL d1 = u == uc ? ih : (REAL)0, d2 = d1 * ih;
     w[0] = s * s * s * r6;
     w[1] = ((REAL)3 * t3 - (REAL)6 * t2 + (REAL)4) * r6;
     w[2] = ((REAL)-3 * t3 + (REAL)3 * t2 + (REAL)3 * t + (REAL)1) * r6;
@@ -60,17 +61,17 @@ SDF_INLINE int sdf_axis(REAL x, REAL lo, REAL h, int n, REAL *w, REAL *d, REAL *
     return c;
 }
 
-#define SDF_AXES(x)                                                                     \
-    REAL wx[4], dx[4], ex[4], wy[4], dy[4], ey[4], wz[4], dz[4], ez[4];                 \
-    int cx = sdf_axis((x).x, (REAL)BOX_LO_X, SDF_HX, VOX_NX, wx, dx, ex);               \
-    int cy = sdf_axis((x).y, (REAL)BOX_LO_Y, SDF_HY, VOX_NY, wy, dy, ey);               \
-    int cz = sdf_axis((x).z, (REAL)BOX_LO_Z, SDF_HZ, VOX_NZ, wz, dz, ez);
-#define SDF_NODE(a, b, c)                                                               \
-    ((clamp(cx - 1 + (a), 0, VOX_NX - 1) * VOX_NY + clamp(cy - 1 + (b), 0, VOX_NY - 1)) * \
-         VOX_NZ +                                                                       \
+#define SDF_AXES(x)                                                                        \
+    REAL wx[4], dx[4], ex[4], wy[4], dy[4], ey[4], wz[4], dz[4], ez[4];                    \
+    int cx = sdf_axis((x).x, BOX_LO_X, VOX_HX, VOX_IHX, VOX_NX, wx, dx, ex);               \
+    int cy = sdf_axis((x).y, BOX_LO_Y, VOX_HY, VOX_IHY, VOX_NY, wy, dy, ey);               \
+    int cz = sdf_axis((x).z, BOX_LO_Z, VOX_HZ, VOX_IHZ, VOX_NZ, wz, dz, ez);
+#define SDF_NODE(a, b, c)                                                                  \
+    ((clamp(cx - 1 + (a), 0, VOX_NX - 1) * VOX_NY + clamp(cy - 1 + (b), 0, VOX_NY - 1)) *  \
+         VOX_NZ +                                                                          \
      clamp(cz - 1 + (c), 0, VOX_NZ - 1))
 
-SDF_INLINE REAL sdf_value(__global const REAL *restrict fd, real3 x) {
+SDF_INLINE REAL sdf_value(FIELD_PARAMS, real3 x) {
     SDF_AXES(x)
     REAL f = 0;
     for (int a = 0; a < 4; ++a) {
@@ -86,7 +87,7 @@ SDF_INLINE REAL sdf_value(__global const REAL *restrict fd, real3 x) {
 }
 
 /* phi, its gradient and its Hessian h = (xx, yy, zz, xy, xz, yz). */
-SDF_INLINE REAL sdf_eval(__global const REAL *restrict fd, real3 x, real3 *g, REAL *h) {
+SDF_INLINE REAL sdf_eval(FIELD_PARAMS, real3 x, real3 *g, REAL *h) {
     SDF_AXES(x)
     REAL f = 0, gx = 0, gy = 0, gz = 0;
     for (int k = 0; k < 6; ++k) h[k] = 0;
@@ -123,8 +124,7 @@ SDF_INLINE REAL sdf_eval(__global const REAL *restrict fd, real3 x, real3 *g, RE
 }
 
 /* grad += af dphi/dtheta + ag . dgrad(phi)/dtheta at x. */
-SDF_INLINE void sdf_splat(__global const REAL *restrict fd, __global REAL *grad, real3 x, REAL af,
-                      real3 ag) {
+SDF_INLINE void sdf_splat(FIELD_PARAMS, __global REAL *grad, real3 x, REAL af, real3 ag) {
     SDF_AXES(x)
     for (int a = 0; a < 4; ++a)
         for (int b = 0; b < 4; ++b)
@@ -138,12 +138,12 @@ SDF_INLINE void sdf_splat(__global const REAL *restrict fd, __global REAL *grad,
 
 #if SDF_SPHERE
 #define SDF_ETA(fd) ((fd)[4])
-SDF_INLINE REAL sdf_value(__global const REAL *restrict fd, real3 x) {
+SDF_INLINE REAL sdf_value(FIELD_PARAMS, real3 x) {
     real3 r = x - r3(fd[0], fd[1], fd[2]);
     return sqrt(dot(r, r)) - fd[3];
 }
 
-SDF_INLINE REAL sdf_eval(__global const REAL *restrict fd, real3 x, real3 *g, REAL *h) {
+SDF_INLINE REAL sdf_eval(FIELD_PARAMS, real3 x, real3 *g, REAL *h) {
     real3 r = x - r3(fd[0], fd[1], fd[2]);
     REAL l = sqrt(dot(r, r));
     real3 u = r / l;
@@ -158,11 +158,10 @@ SDF_INLINE REAL sdf_eval(__global const REAL *restrict fd, real3 x, real3 *g, RE
 }
 
 /* phi = |x - c| - R: dphi/dc = -u, dphi/dR = -1, dgrad/dc = -Hess, dgrad/dR = 0. */
-SDF_INLINE void sdf_splat(__global const REAL *restrict fd, __global REAL *grad, real3 x, REAL af,
-                      real3 ag) {
+SDF_INLINE void sdf_splat(FIELD_PARAMS, __global REAL *grad, real3 x, REAL af, real3 ag) {
     REAL h[6];
     real3 u;
-    sdf_eval(fd, x, &u, h);
+    sdf_eval(FIELD_ARGS, x, &u, h);
     atomic_add_real(grad + 0, -af * u.x - (h[0] * ag.x + h[3] * ag.y + h[4] * ag.z));
     atomic_add_real(grad + 1, -af * u.y - (h[3] * ag.x + h[1] * ag.y + h[5] * ag.z));
     atomic_add_real(grad + 2, -af * u.z - (h[4] * ag.x + h[5] * ag.y + h[2] * ag.z));
@@ -178,25 +177,25 @@ SDF_INLINE real3 hess_mul(const REAL *h, real3 v) {
 
 /* Where phi, seen from side s (+1 outside, -1 inside), first turns <= 0 along o + t d for t
  * in [t, t_hi]: 1 with the root in *tc, 0 if it does not, -1 past the march cap. */
-SDF_INLINE int sdf_cross(__global const REAL *restrict fd, real3 o, real3 d, REAL t, REAL t_hi,
-                     REAL s, REAL lip, int *work, REAL *tc) {
-    REAL f = s * sdf_value(fd, o + t * d);
+SDF_INLINE int sdf_cross(FIELD_PARAMS, real3 o, real3 d, REAL t, REAL t_hi, REAL s, REAL lip,
+                         int *work, REAL *tc) {
+    REAL f = s * sdf_value(FIELD_ARGS, o + t * d);
     for (int k = 0; k < MAX_MARCH; ++k) {
         if (f <= (REAL)0) { /* started on the far side: within MIN_STEP of the last event */
             *tc = t;
             return 1;
         }
-        REAL tn = fmin(t + fmax(f / lip, (REAL)MIN_STEP), t_hi);
-        REAL fn = s * sdf_value(fd, o + tn * d);
+        REAL tn = fmin(t + fmax(f / lip, MIN_STEP), t_hi);
+        REAL fn = s * sdf_value(FIELD_ARGS, o + tn * d);
         ++*work;
         if (fn <= (REAL)0) {
             /* Illinois: regula falsi that halves the weight of a side kept twice */
             REAL a = t, b = tn, fa = f, fb = fn;
             int side = 0;
-            for (int it = 0; it < 200 && b - a > (REAL)TOL; ++it) {
+            for (int it = 0; it < 200 && b - a > TOL; ++it) {
                 REAL m = (a * fb - b * fa) / (fb - fa);
                 if (!(m > a && m < b)) m = (REAL)0.5 * (a + b);
-                REAL fm = s * sdf_value(fd, o + m * d);
+                REAL fm = s * sdf_value(FIELD_ARGS, o + m * d);
                 ++*work;
                 if (fm > (REAL)0) {
                     a = m;
@@ -221,9 +220,9 @@ SDF_INLINE int sdf_cross(__global const REAL *restrict fd, real3 o, real3 d, REA
 }
 
 /* Distance along d to the box from outside (0 inside), or -1 when the line misses it. */
-SDF_INLINE REAL box_entry_distance(real3 p, real3 d) {
-    REAL lo[3] = {(REAL)BOX_LO_X, (REAL)BOX_LO_Y, (REAL)BOX_LO_Z};
-    REAL hi[3] = {(REAL)BOX_HI_X, (REAL)BOX_HI_Y, (REAL)BOX_HI_Z};
+SDF_INLINE REAL box_entry_distance(__global const REAL *restrict fp, real3 p, real3 d) {
+    REAL lo[3] = {BOX_LO_X, BOX_LO_Y, BOX_LO_Z};
+    REAL hi[3] = {BOX_HI_X, BOX_HI_Y, BOX_HI_Z};
     REAL pc[3] = {p.x, p.y, p.z}, dc[3] = {d.x, d.y, d.z};
     REAL tn = (REAL)0, tf = (REAL)1e30;
     for (int j = 0; j < 3; j++) {
@@ -240,22 +239,23 @@ SDF_INLINE REAL box_entry_distance(real3 p, real3 d) {
 
 /* One ray from o along unit d: its status, exit point and direction, event count and march
  * work; the events (point, incoming direction, inside before it) into ex/ed/ein. */
-SDF_INLINE int sdf_path(__global const REAL *restrict fd, REAL lip, real3 o, real3 d, real3 *pos,
-                    real3 *dir, int *nev, int *work, real3 *ex, real3 *ed, int *ein) {
+SDF_INLINE int sdf_path(FIELD_PARAMS, REAL lip, real3 o, real3 d, real3 *pos, real3 *dir,
+                        int *nev, int *work, real3 *ex, real3 *ed, int *ein) {
     *nev = 0;
     *pos = o;
     *dir = d;
-    REAL t0 = box_entry_distance(o, d);
+    REAL t0 = box_entry_distance(fp, o, d);
     if (t0 < (REAL)0) return ST_MISSED;
     const REAL eta = SDF_ETA(fd);
     real3 p = o + t0 * d;
     int inside = 0, ev = 0;
     REAL start = 0;
-    if (sdf_value(fd, p) <= (REAL)0) return ST_TRAPPED; /* the solid reaches the box wall */
+    if (sdf_value(FIELD_ARGS, p) <= (REAL)0) return ST_TRAPPED; /* the solid reaches the box wall */
     for (;;) {
         *nev = ev;
-        REAL t_hi = box_exit_distance(p, d), tc;
-        int h = sdf_cross(fd, p, d, start, t_hi, inside ? (REAL)-1 : (REAL)1, lip, work, &tc);
+        REAL t_hi = box_exit_distance(fp, p, d), tc;
+        int h = sdf_cross(FIELD_ARGS, p, d, start, t_hi, inside ? (REAL)-1 : (REAL)1, lip, work,
+                          &tc);
         if (h < 0) return ST_TRAPPED;
         if (h == 0) {
             *dir = d;
@@ -265,7 +265,7 @@ SDF_INLINE int sdf_path(__global const REAL *restrict fd, REAL lip, real3 o, rea
         if (ev >= MAX_EVENTS) return ST_TRAPPED;
         real3 x = p + tc * d, g;
         REAL hs[6];
-        sdf_eval(fd, x, &g, hs);
+        sdf_eval(FIELD_ARGS, x, &g, hs);
         real3 nrm = unit3(g);
         real3 dn = refract_or_reflect(d, nrm, inside, eta);
         if (!finite3(x) || !finite3(dn)) return ST_NONFINITE;
@@ -276,11 +276,11 @@ SDF_INLINE int sdf_path(__global const REAL *restrict fd, REAL lip, real3 o, rea
         inside = dot(dn, nrm) < (REAL)0;
         p = x;
         d = dn;
-        start = (REAL)OFFSET / fmax(fabs(dot(dn, nrm)), (REAL)1e-3);
+        start = OFFSET / fmax(fabs(dot(dn, nrm)), (REAL)1e-3);
     }
 }
 
-__kernel void interface_trace(__global const REAL *restrict fd, const REAL lip, const int n,
+__kernel void interface_trace(FIELD_PARAMS, const REAL lip, const int n,
                               __global const REAL *ox, __global const REAL *oy,
                               __global const REAL *oz, __global const REAL *dx,
                               __global const REAL *dy, __global const REAL *dz,
@@ -293,7 +293,7 @@ __kernel void interface_trace(__global const REAL *restrict fd, const REAL lip, 
     real3 ex[MAX_EVENTS], ed[MAX_EVENTS], pos, dir;
     int ein[MAX_EVENTS], nev, w = 0;
     real3 o = r3(ox[i], oy[i], oz[i]), d = unit3(r3(dx[i], dy[i], dz[i]));
-    int st = sdf_path(fd, lip, o, d, &pos, &dir, &nev, &w, ex, ed, ein);
+    int st = sdf_path(FIELD_ARGS, lip, o, d, &pos, &dir, &nev, &w, ex, ed, ein);
     px[i] = pos.x;
     py[i] = pos.y;
     pz[i] = pos.z;
@@ -307,7 +307,7 @@ __kernel void interface_trace(__global const REAL *restrict fd, const REAL lip, 
 
 /* The adjoint of one ray's exit direction (mu = dJ/d dir) back to phi's parameters (grad,
  * atomic adds) and the index (geta[i]). */
-__kernel void interface_adjoint(__global const REAL *restrict fd, const REAL lip, const int n,
+__kernel void interface_adjoint(FIELD_PARAMS, const REAL lip, const int n,
                                 __global const REAL *ox, __global const REAL *oy,
                                 __global const REAL *oz, __global const REAL *dx,
                                 __global const REAL *dy, __global const REAL *dz,
@@ -319,7 +319,7 @@ __kernel void interface_adjoint(__global const REAL *restrict fd, const REAL lip
     real3 ex[MAX_EVENTS], ed[MAX_EVENTS], pos, dir;
     int ein[MAX_EVENTS], nev, w = 0;
     real3 o = r3(ox[i], oy[i], oz[i]), d0 = unit3(r3(dx[i], dy[i], dz[i]));
-    int st = sdf_path(fd, lip, o, d0, &pos, &dir, &nev, &w, ex, ed, ein);
+    int st = sdf_path(FIELD_ARGS, lip, o, d0, &pos, &dir, &nev, &w, ex, ed, ein);
     REAL aeta = 0;
     real3 ad = r3(mux[i], muy[i], muz[i]), ax = r3(0, 0, 0);
     if (st != ST_EXITED) nev = 0;
@@ -328,14 +328,14 @@ __kernel void interface_adjoint(__global const REAL *restrict fd, const REAL lip
     for (int k = 0; k < nev; ++k) {
         real3 g;
         REAL hs[6];
-        sdf_eval(fd, ex[k], &g, hs);
+        sdf_eval(FIELD_ARGS, ex[k], &g, hs);
         if (fabs(dot(g, ed[k])) < (REAL)ADJ_MIN_COS * sqrt(dot(g, g))) nev = 0;
     }
 #endif
     for (int k = nev - 1; k >= 0; --k) {
         real3 x = ex[k], d = ed[k], g;
         REAL hs[6];
-        sdf_eval(fd, x, &g, hs);
+        sdf_eval(FIELD_ARGS, x, &g, hs);
         REAL gn = sqrt(dot(g, g));
         real3 nrm = g / gn;
         REAL sg = dot(d, nrm) < (REAL)0 ? (REAL)1 : (REAL)-1;
@@ -367,7 +367,7 @@ __kernel void interface_adjoint(__global const REAL *restrict fd, const REAL lip
         REAL s2 = dot(d, a_x) / dot(g, d);
         real3 a_p = a_x - s2 * g;
         REAL t = k > 0 ? dot(x - ex[k - 1], d) : (REAL)0;
-        sdf_splat(fd, grad, x, -s2, a_g);
+        sdf_splat(FIELD_ARGS, grad, x, -s2, a_g);
         ad = a_d + t * a_p;
         ax = a_p;
     }
@@ -375,7 +375,7 @@ __kernel void interface_adjoint(__global const REAL *restrict fd, const REAL lip
 }
 
 /* phi and its gradient at points (the device check against the NumPy reference). */
-__kernel void interface_eval(__global const REAL *restrict fd, const int n,
+__kernel void interface_eval(FIELD_PARAMS, const int n,
                              __global const REAL *x, __global const REAL *y,
                              __global const REAL *z, __global REAL *phi, __global REAL *gx,
                              __global REAL *gy, __global REAL *gz) {
@@ -383,7 +383,7 @@ __kernel void interface_eval(__global const REAL *restrict fd, const int n,
     if (i >= n) return;
     real3 g;
     REAL hs[6];
-    phi[i] = sdf_eval(fd, r3(x[i], y[i], z[i]), &g, hs);
+    phi[i] = sdf_eval(FIELD_ARGS, r3(x[i], y[i], z[i]), &g, hs);
     gx[i] = g.x;
     gy[i] = g.y;
     gz[i] = g.z;

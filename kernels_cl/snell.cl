@@ -5,10 +5,10 @@
  * This kernel never touches the eikonal tracer. One ray per work-item, scalar REAL: the event
  * loop has data-dependent branches (root isolation, bisection) that do not vectorise.
  *
- * Build defines: exactly one of SOLID_SPHERE, SOLID_PRISM, SOLID_DROP; the box BOX_LO_X ..
- * BOX_HI_Z (and MARGIN, for common.h). Parameters sp (layout of clrefract/snell.py):
+ * Build defines: exactly one of SOLID_SPHERE, SOLID_PRISM, SOLID_DROP, and GEO_AT. Parameters
+ * sp (layout of clrefract/snell.py):
  *   sp[0..2]  centre           sp[3..11] world -> local rotation, row-major
- *   sp[12] a  sp[13] b         sp[14] eta
+ *   sp[12] a  sp[13] b         sp[14] eta      sp[15..] the box (common.h, GEO_AT 15)
  *   sphere: a = radius;  prism: a = side, b = length;  drop: a = R, b = H.
  * Everything below works in the solid's local frame: l = M (x - centre).
  */

@@ -26,10 +26,11 @@ inline real3 refract_or_reflect(real3 d, real3 n, int inside, REAL eta) {
 
 inline int finite3(real3 v) { return isfinite(v.x) && isfinite(v.y) && isfinite(v.z); }
 
-/* Distance along d from p to the box wall it leaves through (0 when p is outside). */
-inline REAL box_exit_distance(real3 p, real3 d) {
-    REAL lo[3] = {(REAL)BOX_LO_X, (REAL)BOX_LO_Y, (REAL)BOX_LO_Z};
-    REAL hi[3] = {(REAL)BOX_HI_X, (REAL)BOX_HI_Y, (REAL)BOX_HI_Z};
+/* Distance along d from p to the box wall it leaves through (0 when p is outside); the box
+ * from the parameters fp (common.h). */
+inline REAL box_exit_distance(__global const REAL *restrict fp, real3 p, real3 d) {
+    REAL lo[3] = {BOX_LO_X, BOX_LO_Y, BOX_LO_Z};
+    REAL hi[3] = {BOX_HI_X, BOX_HI_Y, BOX_HI_Z};
     REAL pc[3] = {p.x, p.y, p.z}, dc[3] = {d.x, d.y, d.z};
     REAL t = (REAL)1e30;
     for (int j = 0; j < 3; j++) {

@@ -8,10 +8,11 @@
  * critical angle, reflects; no Fresnel split, no absorption. One ray per work-item, scalar
  * REAL: the marching loop is data dependent and does not vectorise.
  *
- * Build defines: one SHAPE_* (SHAPE_RANDOM also NPRIM), the box BOX_LO_X .. BOX_HI_Z.
- * Parameters sp (SdfSolid.kernel_params): sp[0..2] centre, sp[3..11] world -> local rotation
- * (row-major), sp[12] eta, sp[13] Lipschitz bound L, sp[14] bounding radius Rb about the
- * centre, sp[15..] the shape's own parameters (q below). Work is in the local frame.
+ * Build defines: one SHAPE_* (SHAPE_RANDOM also NPRIM), GEO_AT. Parameters sp
+ * (SdfSolid.kernel_params): sp[0..2] centre, sp[3..11] world -> local rotation (row-major),
+ * sp[12] eta, sp[13] Lipschitz bound L, sp[14] bounding radius Rb about the centre, sp[15..]
+ * the shape's own parameters (q below), then from sp[GEO_AT] the box (common.h). Work is in
+ * the local frame.
  */
 
 #ifdef REAL_IS_DOUBLE

@@ -3,7 +3,8 @@
  * defines hit_solid(sp, o, d, inside, &t, &n) -> 1 hit, 0 none, -1 failure (t along d, n the
  * outward unit normal, in the local frame), solid_size(sp), solid_eta(sp) and OFFSET_REL.
  * Parameters sp start with the centre (sp[0..2]) and the world -> local rotation (sp[3..11],
- * row-major). */
+ * row-major), and end with the geometry from sp[GEO_AT] (common.h: the box EXITED rays leave
+ * through). */
 
 /* Status: ST_EXITED (left the object; position on the box), ST_MISSED (never hit it;
  * position = origin), ST_TRAPPED (max_events reached with another event due; position = last
@@ -71,7 +72,7 @@ __kernel void snell_trace(__global const REAL *restrict sp, const int max_events
         dwo = dw;
         sw = pos = ow;
     } else if (st == ST_EXITED) {
-        pos = sw + box_exit_distance(sw, dwo) * dwo;
+        pos = sw + box_exit_distance(sp, sw, dwo) * dwo;
     }
     px[i] = pos.x;
     py[i] = pos.y;

@@ -181,13 +181,14 @@ inline void ode_step(FIELD_PARAMS, realv h, realv *x, realv *y, realv *z, realv 
     KAHAN(vy, cvy, ivy, nvy, ncvy);                                                            \
     KAHAN(vz, cvz, ivz, nvz, ncvz)
 
-inline maskv outside_box(realv x, realv y, realv z) {
+inline maskv outside_box(__global const REAL *restrict fp, realv x, realv y, realv z) {
     return x < RV(BOX_LO_X) || x > RV(BOX_HI_X) || y < RV(BOX_LO_Y) || y > RV(BOX_HI_Y) ||
            z < RV(BOX_LO_Z) || z > RV(BOX_HI_Z);
 }
 
 /* Distance along the unit direction d from a point inside the box to its boundary. */
-inline realv box_exit_t(realv x, realv y, realv z, realv dx, realv dy, realv dz) {
+inline realv box_exit_t(__global const REAL *restrict fp, realv x, realv y, realv z, realv dx,
+                        realv dy, realv dz) {
     realv tx = (SEL(RV(BOX_LO_X), RV(BOX_HI_X), dx > RV(0)) - x) / dx;
     realv ty = (SEL(RV(BOX_LO_Y), RV(BOX_HI_Y), dy > RV(0)) - y) / dy;
     realv tz = (SEL(RV(BOX_LO_Z), RV(BOX_HI_Z), dz > RV(0)) - z) / dz;
@@ -293,11 +294,11 @@ inline void interface_step(FIELD_PARAMS, maskv active, realv *h, realv *region, 
  * to the nearest such cell (clrefract/occupancy.py). In a cell at distance k >= 1, eta is constant up to k - 1 cells
  * beyond it, so the ray flies straight (x'' = 0) out of its cell and k - 1 cells on: the
  * arc length returned (0 in occupied cells). */
-#define OCC_HX (((REAL)BOX_HI_X - (REAL)BOX_LO_X) / (REAL)OCC_N)
-#define OCC_HY (((REAL)BOX_HI_Y - (REAL)BOX_LO_Y) / (REAL)OCC_N)
-#define OCC_HZ (((REAL)BOX_HI_Z - (REAL)BOX_LO_Z) / (REAL)OCC_N)
-inline realv empty_jump(__global const int *occ, realv x, realv y, realv z, realv ux, realv uy,
-                        realv uz) {
+#define OCC_HX ((BOX_HI_X - BOX_LO_X) / (REAL)OCC_N)
+#define OCC_HY ((BOX_HI_Y - BOX_LO_Y) / (REAL)OCC_N)
+#define OCC_HZ ((BOX_HI_Z - BOX_LO_Z) / (REAL)OCC_N)
+inline realv empty_jump(__global const REAL *restrict fp, __global const int *occ, realv x,
+                        realv y, realv z, realv ux, realv uy, realv uz) {
     realv fx = clamp(floor((x - RV(BOX_LO_X)) / OCC_HX), RV(0), RV(OCC_N - 1));
     realv fy = clamp(floor((y - RV(BOX_LO_Y)) / OCC_HY), RV(0), RV(OCC_N - 1));
     realv fz = clamp(floor((z - RV(BOX_LO_Z)) / OCC_HZ), RV(0), RV(OCC_N - 1));
@@ -439,7 +440,7 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
 #ifdef SKIP_EMPTY
         {
             realv sp = sqrt(vx * vx + vy * vy + vz * vz);
-            realv L = empty_jump(occ, x, y, z, vx / sp, vy / sp, vz / sp);
+            realv L = empty_jump(fp, occ, x, y, z, vx / sp, vy / sp, vz / sp);
             /* whole steps only (dx/dsigma = v): the ray stays on the step lattice it would
              * have followed, so that steps resume where they would have been and images
              * match those without skipping to rounding, not to the integrator's error */
@@ -449,7 +450,7 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
             if (ANY(jumped)) {
                 realv jx = x + sg * vx, jy = y + sg * vy, jz = z + sg * vz;
                 /* a flight out of the box ends the ray: it leaves straight from here */
-                maskv leaves = jumped && outside_box(jx, jy, jz);
+                maskv leaves = jumped && outside_box(fp, jx, jy, jz);
                 maskv mv = jumped && !leaves;
                 x = SEL(x, jx, mv); y = SEL(y, jy, mv); z = SEL(z, jz, mv);
                 cx = SEL(cx, RV(0), mv); cy = SEL(cy, RV(0), mv); cz = SEL(cz, RV(0), mv);
@@ -490,7 +491,7 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
 #endif
         KAHAN_STATE;
         maskv bad = !isfinite(nx + ny + nz + nvx + nvy + nvz);
-        maskv go = moving && !outside_box(nx, ny, nz) && !bad;
+        maskv go = moving && !outside_box(fp, nx, ny, nz) && !bad;
         x = SEL(x, nx, go); y = SEL(y, ny, go); z = SEL(z, nz, go);
         vx = SEL(vx, nvx, go); vy = SEL(vy, nvy, go); vz = SEL(vz, nvz, go);
         cx = SEL(cx, ncx, go); cy = SEL(cy, ncy, go); cz = SEL(cz, ncz, go);
@@ -529,7 +530,7 @@ __kernel void trace_rays(FIELD_PARAMS, const REAL h, const int max_steps,
     realv ex = vx * iv, ey = vy * iv, ez = vz * iv;
     VSTORE(x, i, lx); VSTORE(y, i, ly); VSTORE(z, i, lz);
     maskv out = st == RV(ST_EXITED);
-    realv te = SEL(RV(0), box_exit_t(x, y, z, ex, ey, ez), out);
+    realv te = SEL(RV(0), box_exit_t(fp, x, y, z, ex, ey, ez), out);
     x += te * ex; y += te * ey; z += te * ez;
     maskv missed = st == RV(ST_MISSED);
     x = SEL(x, sx, missed); y = SEL(y, sy, missed); z = SEL(z, sz, missed);

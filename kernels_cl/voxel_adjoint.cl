@@ -42,11 +42,12 @@
     }
 #define FIELD_ACC_FLUSH(grad, partial, gid)                                                  \
     for (int l_ = 0; l_ < LANES; ++l_)                                                       \
-        voxel_flush_lane(grad, vcell[l_], vacc, l_);                                         \
+        voxel_flush_lane(fp, grad, vcell[l_], vacc, l_);                                     \
     LS_ACC_FLUSH(partial, gid)
 
 /* Add lane l's splats of `cell` to grad and zero them. */
-VOX_INLINE void voxel_flush_lane(__global REAL *grad, int cell, REAL (*acc)[LANES], int l) {
+VOX_INLINE void voxel_flush_lane(__global const REAL *restrict fp, __global REAL *grad, int cell,
+                                 REAL (*acc)[LANES], int l) {
     if (cell < 0)
         return;
     const int i = cell / (VOX_NY * VOX_NZ), j = (cell / VOX_NZ) % VOX_NY, k = cell % VOX_NZ;
@@ -74,9 +75,9 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
                            realv *hy, realv *hz, __global REAL *grad FIELD_ACC_PARAM) {
     realv wx[4], dx[4], sx[4], wy[4], dy[4], sy[4], wz[4], dz[4], sz[4];
     int ox[4][LANES], oy[4][LANES], oz[4][LANES];
-    intv i = vox_axis4v(x, (REAL)BOX_LO_X, VOX_HX, VOX_NX, wx, dx, sx);
-    intv j = vox_axis4v(y, (REAL)BOX_LO_Y, VOX_HY, VOX_NY, wy, dy, sy);
-    intv k = vox_axis4zv(z, oz, wz, dz, sz);
+    intv i = vox_axis4v(x, BOX_LO_X, VOX_HX, VOX_IHX, VOX_NX, wx, dx, sx);
+    intv j = vox_axis4v(y, BOX_LO_Y, VOX_HY, VOX_IHY, VOX_NY, wy, dy, sy);
+    intv k = vox_axis4zv(fp, z, oz, wz, dz, sz);
     vox_offsets(i, VOX_NX, VOX_NY * VOX_NZ, ox);
     vox_offsets(j, VOX_NY, VOX_NZ, oy);
     /* interpolant g, its gradient and Hessian (xx yy zz xy xz yz): separable sums over z,
@@ -114,7 +115,7 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
      * phi^T + F' Hess phi */
     const REAL n = fd[VOX_NODES];
     realv S, dS, f2;
-    realv g1 = levelset_map(g, n, &S, &dS, &f2), f1 = RV(n - (REAL)1) * dS;
+    realv g1 = levelset_map(fp, g, n, &S, &dS, &f2), f1 = RV(n - (REAL)1) * dS;
     realv pg[3] = {gg[0], gg[1], gg[2]};
     gh[0] = f2 * pg[0] * pg[0] + f1 * gh[0];
     gh[1] = f2 * pg[1] * pg[1] + f1 * gh[1];
@@ -126,7 +127,7 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
         gg[a] *= f1;
 #endif
     realv gw[3], hw[6];
-    realv W = window_hess_v(x, y, z, gw, hw);
+    realv W = window_hess_v(fp, x, y, z, gw, hw);
 #if !VOX_LEVELSET
     realv g1 = g - RV(1);
 #endif
@@ -168,7 +169,7 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
     VSTORE_INT((i * VOX_NY + j) * VOX_NZ + k, 0, keys);
     for (int l = 0; l < LANES; ++l)
         if (acts[l] != 0 && keys[l] != vcell[l]) {
-            voxel_flush_lane(grad, vcell[l], vacc, l);
+            voxel_flush_lane(fp, grad, vcell[l], vacc, l);
             vcell[l] = keys[l];
         }
     /* node weight c = wx wy wz: d eta / d theta = W c, d (mu . grad eta) / d theta =
@@ -215,9 +216,10 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
 #define FIELD_ACC_ARG , vcell, vacc
 #define FIELD_ACC_FLUSH(grad, partial, gid)                                                  \
     for (int l_ = 0; l_ < LANES; ++l_)                                                       \
-        voxel_flush(grad, vcell[l_], vacc[l_])
+        voxel_flush(fp, grad, vcell[l_], vacc[l_])
 
-VOX_INLINE void voxel_flush(__global REAL *grad, int cell, REAL *acc) {
+VOX_INLINE void voxel_flush(__global const REAL *restrict fp, __global REAL *grad, int cell,
+                            REAL *acc) {
     if (cell < 0)
         return;
     for (int a = 0; a < 2; ++a)
@@ -242,20 +244,20 @@ VOX_INLINE void vox_axis(REAL t, REAL *w, REAL *d, REAL *s) {
     s[0] = -sst; s[1] = sst;
 }
 
-/* One lane; the box window W, its gradient gw and Hessian hw come from the lane vectors. */
-VOX_INLINE REAL voxel_adjoint1(__global const REAL *restrict fd, __global REAL *grad,
-                               REAL x, REAL y, REAL z, REAL mx, REAL my, REAL mz, REAL w,
-                               REAL W, const REAL *gw, const REAL *hw, REAL *ge, REAL *hm,
-                               int *cell, REAL *acc) {
-    const REAL hx = ((REAL)BOX_HI_X - (REAL)BOX_LO_X) / (VOX_NX - 1);
-    const REAL hy = ((REAL)BOX_HI_Y - (REAL)BOX_LO_Y) / (VOX_NY - 1);
-    const REAL hz = ((REAL)BOX_HI_Z - (REAL)BOX_LO_Z) / (VOX_NZ - 1);
-    REAL ux = clamp((x - (REAL)BOX_LO_X) / hx, (REAL)0, (REAL)(VOX_NX - 1));
-    REAL uy = clamp((y - (REAL)BOX_LO_Y) / hy, (REAL)0, (REAL)(VOX_NY - 1));
-    REAL uz = clamp((z - (REAL)BOX_LO_Z) / hz, (REAL)0, (REAL)(VOX_NZ - 1));
-    int i = min((int)floor(ux), VOX_NX - 2);
-    int j = min((int)floor(uy), VOX_NY - 2);
-    int k = min((int)floor(uz), VOX_NZ - 2);
+/* One lane; the box window W, its gradient gw and Hessian hw come from the lane vectors, the
+ * grid's geometry G from vox_geometry. */
+VOX_INLINE REAL voxel_adjoint1(FIELD_PARAMS, vox_geo G, __global REAL *grad, REAL x, REAL y,
+                               REAL z, REAL mx, REAL my, REAL mz, REAL w, REAL W,
+                               const REAL *gw, const REAL *hw, REAL *ge, REAL *hm, int *cell,
+                               REAL *acc) {
+    const REAL hx = G.h[0], hy = G.h[1], hz = G.h[2];
+    const int ny = G.n[1], nz = G.n[2];
+    REAL ux = clamp((x - G.lo[0]) / hx, (REAL)0, (REAL)(G.n[0] - 1));
+    REAL uy = clamp((y - G.lo[1]) / hy, (REAL)0, (REAL)(ny - 1));
+    REAL uz = clamp((z - G.lo[2]) / hz, (REAL)0, (REAL)(nz - 1));
+    int i = min((int)floor(ux), G.n[0] - 2);
+    int j = min((int)floor(uy), ny - 2);
+    int k = min((int)floor(uz), nz - 2);
     REAL wx[2], dx[2], sx[2], wy[2], dy[2], sy[2], wz[2], dz[2], sz[2];
     vox_axis(ux - i, wx, dx, sx);
     vox_axis(uy - j, wy, dy, sy);
@@ -270,7 +272,7 @@ VOX_INLINE REAL voxel_adjoint1(__global const REAL *restrict fd, __global REAL *
     for (int a = 0; a < 2; ++a)
         for (int b = 0; b < 2; ++b)
             for (int c = 0; c < 2; ++c) {
-                REAL t = fd[((i + a) * VOX_NY + (j + b)) * VOX_NZ + (k + c)];
+                REAL t = fd[((i + a) * ny + (j + b)) * nz + (k + c)];
                 g += wx[a] * wy[b] * wz[c] * t;
                 gg[0] += dx[a] * wy[b] * wz[c] * t;
                 gg[1] += wx[a] * dy[b] * wz[c] * t;
@@ -300,9 +302,9 @@ VOX_INLINE REAL voxel_adjoint1(__global const REAL *restrict fd, __global REAL *
     hm[2] = H[4] * m[0] + H[5] * m[1] + H[2] * m[2];
     if (w != 0 && W != 0) {
         /* d eta / d theta_c = W c;  d (mu . grad eta) / d theta_c = c (mu . gW) + W mu . grad c */
-        int base = (i * VOX_NY + j) * VOX_NZ + k;
+        int base = (i * ny + j) * nz + k;
         if (base != *cell) {
-            voxel_flush(grad, *cell, acc);
+            voxel_flush(fp, grad, *cell, acc);
             *cell = base;
         }
         REAL am = w * (mx * ge[0] + my * ge[1] + mz * ge[2]);
@@ -329,17 +331,18 @@ inline realv field_adjoint(FIELD_PARAMS, realv x, realv y, realv z, realv mx, re
     VSTORE(mx, 0, ms[0]); VSTORE(my, 0, ms[1]); VSTORE(mz, 0, ms[2]);
     VSTORE(w, 0, ws);
     realv gwv[3], hwv[6];
-    VSTORE(window_hess_v(x, y, z, gwv, hwv), 0, Ws);
+    VSTORE(window_hess_v(fp, x, y, z, gwv, hwv), 0, Ws);
     for (int a = 0; a < 3; ++a)
         VSTORE(gwv[a], 0, gws[a]);
     for (int a = 0; a < 6; ++a)
         VSTORE(hwv[a], 0, hws[a]);
+    const vox_geo G = vox_geometry(fp);
     for (int l = 0; l < LANES; ++l) {
         REAL ge[3], hm[3];
         REAL gw[3] = {gws[0][l], gws[1][l], gws[2][l]};
         REAL hw[6] = {hws[0][l], hws[1][l], hws[2][l], hws[3][l], hws[4][l], hws[5][l]};
-        eo[l] = voxel_adjoint1(fd, grad, xs[l], ys[l], zs[l], ms[0][l], ms[1][l], ms[2][l],
-                               ws[l], Ws[l], gw, hw, ge, hm, &vcell[l], vacc[l]);
+        eo[l] = voxel_adjoint1(FIELD_ARGS, G, grad, xs[l], ys[l], zs[l], ms[0][l], ms[1][l],
+                               ms[2][l], ws[l], Ws[l], gw, hw, ge, hm, &vcell[l], vacc[l]);
         for (int a = 0; a < 3; ++a) {
             go[a][l] = ge[a];
             ho[a][l] = hm[a];

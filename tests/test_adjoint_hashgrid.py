@@ -78,7 +78,7 @@ def kernel_adjoint_terms(field, pts, mu, w, precision, lanes):
     cl = rt.cl
     dt = rt.real_dtype(precision)
     lanes = field.lanes_on(rt, lanes)  # 1 on GPUs
-    defines = {**field.defines(), **field.box.defines(), "LANES": lanes}
+    defines = {**field.defines(), "GEO_AT": len(field.params()), "LANES": lanes}
     sources = ["common.h", field.source, field.adjoint_source]
     prg = rt.build(sources, defines, precision, extra_source=POINTS_KERNEL)
     n = len(pts)
@@ -96,7 +96,7 @@ def kernel_adjoint_terms(field, pts, mu, w, precision, lanes):
     b_out = cl.Buffer(rt.context, mf.WRITE_ONLY, out.nbytes)
     b_grad = cl.Buffer(rt.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=grad)
     b_part = cl.Buffer(rt.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=partial)
-    fp, fd = buf(np.append(field.params(), 0)), buf(np.append(field.data(), 0))
+    fp, fd = buf(field.kernel_params(field.box)), buf(np.append(field.data(), 0))
     prg.adjoint_points(rt.queue, (n // lanes,), None, fp, fd, *cols, b_out, b_grad, b_part)
     for a, b in ((out, b_out), (grad, b_grad), (partial, b_part)):
         cl.enqueue_copy(rt.queue, a, b)

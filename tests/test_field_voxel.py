@@ -166,12 +166,11 @@ def test_data_layout_defines_and_metadata():
     assert field.data()[(i * ny + j) * nz + k] == field.values[i, j, k]
     assert field.defines() == {
         "FIELD_VOXEL": 1,
-        "VOX_NX": nx,
-        "VOX_NY": ny,
-        "VOX_NZ": nz,
         "VOX_SMOOTH": 1,
         "VOX_BSPLINE": 0,
+        "VOX_ZVEC": int(nz >= 4),
     }
+    assert field.nodes() == (nx, ny, nz)  # data in fp, not build defines
     assert GRIDS["trilinear"].defines()["VOX_SMOOTH"] == 0
     assert GRIDS["bspline"].defines()["VOX_SMOOTH"] == 0
     assert GRIDS["bspline"].defines()["VOX_BSPLINE"] == 1

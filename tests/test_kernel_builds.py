@@ -133,6 +133,45 @@ def test_fitted_forward_and_backward_build_and_agree_with_one_lane(kind, precisi
     assert np.abs(res.direction - ref.direction)[out].max() < tol
 
 
+@pytest.mark.parametrize("interp", ["trilinear", "bspline"])
+def test_grids_of_other_shapes_in_other_boxes_share_one_program(interp):
+    """The box and the node counts are data (fp's geometry), not build defines: two grids of
+    other shapes in other boxes trace through one program, each by its own geometry, and
+    each agrees with its own NumPy reference."""
+    rt = default_runtime()
+    rng = np.random.default_rng(5)
+    boxes = [
+        Box((-30.0, -20.0, -25.0), (30.0, 25.0, 20.0), 3.0),
+        Box((-5.0, -40.0, 0.0), (55.0, 10.0, 45.0), 2.0),
+    ]
+    grids = [
+        VoxelGrid(rng.uniform(1.0, 1.2, s), b, interp)
+        for s, b in zip([(9, 12, 7), (14, 6, 10)], boxes)
+    ]
+    settings = TraceSettings(step=0.5, precision="float64" if rt.info.fp64 else "float32")
+    first = Tracer(grids[0], boxes[0], settings, runtime=rt)
+    built = len(rt.build_seconds)
+    second = Tracer(grids[1], boxes[1], settings, runtime=rt)
+    assert len(rt.build_seconds) == built and second.kernels is first.kernels
+    tol = 1e-9 if settings.precision == "float64" else 1e-4
+    for field, tr, box in zip(grids, (first, second), boxes):
+        lo, hi = np.asarray(box.lo), np.asarray(box.hi)
+        pts = rng.uniform(lo - 2, hi + 2, (256, 3))  # the window's ramps and beyond the box
+        eta, grad = tr.eval_field(pts)
+        want_eta, want_grad = field.eval(pts)
+        assert np.abs(eta - want_eta).max() < tol
+        assert np.abs(grad - want_grad).max() < tol * 10
+        # rays leave through this grid's own box
+        o = np.tile((lo + hi) / 2 + [0.0, 0.0, -200.0], (64, 1)) + rng.normal(0, 3, (64, 3))
+        d = np.column_stack([rng.normal(0, 0.05, (64, 2)), np.ones(64)])
+        res = tr.trace(o, d)
+        out = res.status == Status.EXITED
+        assert out.sum() >= 48
+        near = dict(atol=100 * tol)
+        on_wall = np.isclose(res.position, lo, **near) | np.isclose(res.position, hi, **near)
+        assert np.all(on_wall[out].any(axis=1))
+
+
 def _sphere_exit(o, d, radius, eta):
     """Closed form: a ray at impact parameter b < R through a sharp ball is turned towards
     its centre, in the plane of the ray and the centre, by 2 (asin(b/R) - asin(b/(eta R)))."""

@@ -7,7 +7,6 @@ import pytest
 
 from clrefract.errors import ClrefractError
 from clrefract.fields.analytic import Sphere
-from clrefract.fields.base import Box
 from clrefract.runtime import Runtime, default_runtime, list_devices
 from clrefract.tracer import Tracer, TraceSettings
 
@@ -51,7 +50,7 @@ def test_build_failure_reports_the_compiler_log():
     with pytest.raises(ClrefractError, match="no FIELD_\\* kind defined"):
         rt.build(
             ["common.h", "field_analytic.cl", "trace.cl"],
-            {**Box().defines(), "INTEGRATOR_RKN4": 1},
+            {"GEO_AT": 0, "INTEGRATOR_RKN4": 1},
             "float32",
         )
 

@@ -107,10 +107,10 @@ class NeuralRenderer:
         self.dtype = self.runtime.real_dtype(precision)
         self.lanes = self.runtime.default_lanes(precision)
         enc = field.encoding
-        defines = {**field.box.defines(), **enc.defines(), "LANES": self.lanes}
+        defines = {**enc.defines(), "GEO_AT": len(enc.params()), "LANES": self.lanes}
         sources = ["common.h", "field_hashgrid.cl", "straight_neural.cl"]
         self.k = self.runtime.build(sources, defines, precision)
-        self._fp = self._buffer(enc.params())
+        self._fp = self._buffer(enc.kernel_params(field.box))
         self._fd = None
         self._last = None  # (origins, samples, sigma, rgb) of the last render, for backward
         self.upload(field.params)

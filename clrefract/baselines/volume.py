@@ -20,8 +20,9 @@ class StraightRenderer:
         self.runtime = runtime or default_runtime()
         self.box, self.res, self.step, self.precision = box, int(res), float(step), precision
         self.dtype = self.runtime.real_dtype(precision)
-        defines = {**box.defines(), "RES": self.res}
-        self.k = self.runtime.build(["common.h", "straight_volume.cl"], defines, precision)
+        self.k = self.runtime.build(
+            ["common.h", "straight_volume.cl"], {"RES": self.res}, precision
+        )
         self.spacing = box.size / (self.res - 1)
         self._vol = None
 

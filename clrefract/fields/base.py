@@ -40,11 +40,14 @@ class Box:
         far = np.where(np.isnan(hi), np.inf, hi).min(axis=1)
         return near, far
 
-    def defines(self) -> dict:
-        d = {f"BOX_LO_{a}": repr(float(v)) for a, v in zip("XYZ", self.lo)}
-        d.update({f"BOX_HI_{a}": repr(float(v)) for a, v in zip("XYZ", self.hi)})
-        d["MARGIN"] = repr(float(self.margin))
-        return d
+    def geometry(self, nodes=(0, 0, 0)) -> np.ndarray:
+        """What the kernels read of the box and of a node grid over it (kernels_cl/common.h),
+        as data at the end of their parameters, from GEO_AT on: lo, hi, the margin, the node
+        counts, the node spacing and its inverse (0 without a grid), the margin's inverse."""
+        n = np.asarray(nodes, np.float64)
+        h = np.divide(self.size, n - 1, out=np.zeros(3), where=n > 1)
+        ih = np.divide(1.0, h, out=np.zeros(3), where=h > 0)
+        return np.concatenate([self.lo, self.hi, [self.margin], n, h, ih, [1 / self.margin]])
 
     def to_dict(self) -> dict:
         return {"lo": list(self.lo), "hi": list(self.hi), "margin": self.margin}
@@ -108,8 +111,19 @@ class Field:
         raise NotImplementedError
 
     def params(self) -> np.ndarray:
-        """Small parameter vector (fp in the kernels), float64."""
+        """Small parameter vector (fp in the kernels), float64. Its length is fixed by the
+        build defines: programs are built with GEO_AT = len(params()) (kernel_params)."""
         raise NotImplementedError
+
+    def nodes(self) -> tuple[int, int, int]:
+        """Node counts of the field's grid over its box (0 for a field without one)."""
+        return (0, 0, 0)
+
+    def kernel_params(self, box: Box, params=None) -> np.ndarray:
+        """fp as the kernels read it: params() (or `params`, as long), then from GEO_AT the
+        geometry of `box` and of the field's grid."""
+        p = self.params() if params is None else params
+        return np.concatenate([p, box.geometry(self.nodes())])
 
     def data(self) -> np.ndarray:
         """Bulk data (fd in the kernels): grid values, tables, weights."""

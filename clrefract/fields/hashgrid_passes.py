@@ -91,7 +91,7 @@ class DevicePasses:
         self.dtype = runtime.real_dtype(precision)
         self.lanes = field.lanes_on(runtime, lanes or runtime.default_lanes(precision))
         runtime.check_lanes(self.lanes, precision)
-        defines = {**field.defines(), **field.box.defines(), "LANES": self.lanes}
+        defines = {**field.defines(), "GEO_AT": len(field.params()), "LANES": self.lanes}
         sources = ["common.h", field.source, field.adjoint_source, "hashgrid_distil.cl", "adam.cl"]
         prg = runtime.build(sources, defines, precision)
         self._k_o, self._k_reverse, self._k_adam = (
@@ -104,7 +104,7 @@ class DevicePasses:
         c = field.config
         self.n_params, self.n_tables = c.n_params, c.n_table_params
         self._fp = cl.Buffer(
-            ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self._real(np.append(field.params(), 0))
+            ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self._real(field.kernel_params(field.box))
         )
         # written by the device's Adam step (adam.cl) as well as read by the passes
         self._fd = cl.Buffer(ctx, mf.READ_WRITE, (self.n_params + 1) * self._itemsize)

@@ -35,7 +35,7 @@ class InterfaceField(LevelSetField):
     adjoint_source = None
 
     def defines(self) -> dict:
-        return {**grid_defines(self.shape, "bspline"), "SDF_GRID": 1, **self.box.defines()}
+        return {**grid_defines(self.shape, "bspline"), "SDF_GRID": 1}
 
     def eval(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return sharp_eta(self.sdf(pts)[0], self.eta)
@@ -98,7 +98,7 @@ class SphereInterface(Field):
         return np.zeros(1)
 
     def defines(self) -> dict:
-        return {"SDF_SPHERE": 1, **self.box.defines()}
+        return {"SDF_SPHERE": 1}
 
     @property
     def eta(self) -> float:

@@ -7,10 +7,10 @@ spacing, which a grid of eta values cannot be: a 64^3 grid of phi holds a glass 
 a 256^3 grid of eta barely does. It is the shape of the analytic solids (SmoothSolid), so a
 phi equal to their signed distance reproduces them.
 
-Parameters (fd in the kernels): the phi nodes in C order, then n. The backward pass
-(voxel_adjoint.cl) splats phi's gradient like the B-spline grid's and sums n's per
-work-item (a shared parameter). Only the band |phi| < w/2 has a gradient: nothing else can
-move the surface.
+Parameters (fd in the kernels): the phi nodes in C order, then n; fp holds w (data, so that
+one program serves every width). The backward pass (voxel_adjoint.cl) splats phi's gradient
+like the B-spline grid's and sums n's per work-item (a shared parameter). Only the band
+|phi| < w/2 has a gradient: nothing else can move the surface.
 """
 
 from __future__ import annotations
@@ -72,11 +72,13 @@ class LevelSetField(Field):
         return {
             **grid_defines(self.shape, "bspline"),
             "VOX_LEVELSET": 1,
-            "LS_WIDTH": repr(self.width),
         }
 
     def params(self) -> np.ndarray:
-        return np.zeros(1)
+        return np.array([self.width])
+
+    def nodes(self) -> tuple[int, int, int]:
+        return self.shape
 
     def data(self) -> np.ndarray:
         return np.concatenate([self.phi.ravel(), [self.eta]])

@@ -5,7 +5,8 @@ Layout, shared with kernels_cl/field_voxel.cl and kernels_cl/voxel_adjoint.cl:
 - values[i, j, k] belongs to the node box.lo + (i hx, j hy, k hz), h = box.size / (n - 1):
   node 0 lies on the low wall and node n - 1 on the high wall of each axis.
 - On the device the values are flattened in NumPy C order (x slowest):
-  fd[(i * ny + j) * nz + k] = values[i, j, k]; fp holds nothing.
+  fd[(i * ny + j) * nz + k] = values[i, j, k]; fp holds only the geometry (the box and the
+  node counts, Field.kernel_params).
 - Along each axis u = (x - lo) / h is clamped onto [0, n - 1] (a clamped coordinate has zero
   derivative), the cell is i = min(floor(u), n - 2) and t = u - i in [0, 1].
 - "trilinear" and "smoothstep" interpolate the cell's 2 nodes per axis with weights
@@ -147,15 +148,14 @@ def interpolate(values, box: Box, pts, interp: str = "trilinear"):
 
 
 def grid_defines(shape, interp: str) -> dict:
-    """Build defines of a node grid (field_voxel.cl) of this shape and interpolation."""
-    nx, ny, nz = shape
+    """Build defines of a node grid (field_voxel.cl) of this interpolation; of its shape only
+    whether a row along z holds the 4 nodes of a vector read (the node counts are data:
+    Field.nodes)."""
     return {
         "FIELD_VOXEL": 1,
-        "VOX_NX": nx,
-        "VOX_NY": ny,
-        "VOX_NZ": nz,
         "VOX_SMOOTH": int(interp == "smoothstep"),
         "VOX_BSPLINE": int(interp == "bspline"),
+        "VOX_ZVEC": int(shape[2] >= 4),
     }
 
 
@@ -237,6 +237,9 @@ class VoxelGrid(Field):
 
     def params(self) -> np.ndarray:
         return np.zeros(1)
+
+    def nodes(self) -> tuple[int, int, int]:
+        return self.shape
 
     def data(self) -> np.ndarray:
         """The node values flattened in C order: index (i * ny + j) * nz + k."""

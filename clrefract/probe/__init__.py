@@ -53,13 +53,10 @@ def _probe_inputs(n: int) -> np.ndarray:
 def probe_width(runtime, lanes: int, precision: str) -> dict:
     """Build and run the probe at one width in this process; returns a result record."""
     from ..errors import BuildError
-    from ..fields.base import Box
 
     t0 = time.perf_counter()
     try:
-        prg = runtime.build(
-            ["common.h", "probe.cl"], {**Box().defines(), "LANES": lanes}, precision
-        )
+        prg = runtime.build(["common.h", "probe.cl"], {"LANES": lanes}, precision)
         k = prg.probe_builtins
     except BuildError as exc:
         return {"lanes": lanes, "ok": False, "why": exc.compiler_error}
