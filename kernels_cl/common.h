@@ -36,13 +36,34 @@ typedef int maskv;
 typedef CAT(REAL, LANES) realv;
 typedef CAT(int, LANES) intv;
 #ifdef REAL_IS_DOUBLE
-typedef CAT(long, LANES) maskv;
+#define MASK_T long
 #else
-typedef CAT(int, LANES) maskv;
+#define MASK_T int
 #endif
+typedef CAT(MASK_T, LANES) maskv;
 #define VLOAD(i, p) CAT(vload, LANES)((i), (p))
 #define VSTORE(v, i, p) CAT(vstore, LANES)((v), (i), (p))
-#define ANY(m) any(m)
+/* any() by halving ORs: PoCL's tested the lanes one by one, a branch each, on every step of
+ * every ray loop. A mask lane is 0 or -1. */
+inline __attribute__((always_inline)) int mask_any(maskv m) {
+#if LANES == 16
+    CAT(MASK_T, 8) m8 = m.lo | m.hi;
+#elif LANES == 8
+    CAT(MASK_T, 8) m8 = m;
+#endif
+#if LANES >= 8
+    CAT(MASK_T, 4) m4 = m8.lo | m8.hi;
+#elif LANES == 4
+    CAT(MASK_T, 4) m4 = m;
+#endif
+#if LANES >= 4
+    CAT(MASK_T, 2) m2 = m4.lo | m4.hi;
+#else
+    CAT(MASK_T, 2) m2 = m;
+#endif
+    return (m2.x | m2.y) != 0;
+}
+#define ANY(m) mask_any(m)
 #define SEL(a, b, m) select((a), (b), (m))
 #define TO_INTV(v) CAT(convert_int, LANES)(v)
 #define TO_REALV(v) CAT(convert_, CAT(REAL, LANES))(v)
