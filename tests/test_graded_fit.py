@@ -61,3 +61,23 @@ def test_a_faint_medium_gets_a_rate_of_its_own(tmp_path):
     result = json.loads((run / "results.json").read_text())
     assert result["best_val_over_start"] < 0.4, result
     assert result["test_psnr"] > result["start"]["test_psnr"] + 1.5, result
+
+
+def test_the_default_model_fits_a_gas_plume_whose_masks_hold_no_object(tmp_path, capsys):
+    """Without --field-kind, a plume (eta - 1 about 1e-3) gives the interface no surface to
+    start from: the run says so, leaves it out (model.json records why) and goes on with the
+    voxel grid, where the interface's refusal used to end the whole fit."""
+    from clrefract.cli import main
+    from clrefract.synth import MakeOptions, make_dataset
+
+    data = tmp_path / "plume"
+    make_dataset("plume", data, MakeOptions(views=8, res=24, test_every=4))
+    run = tmp_path / "run"
+    args = ["fit", str(data), "--out", str(run), "--iterations", "4", "--grid-res", "12"]
+    assert main(args + ["--test-views", "1"]) == 0
+    model = json.loads((run / "model.json").read_text())
+    assert model["chosen"] == "voxel" and set(model["held_out_loss"]) == {"voxel"}
+    assert "do not agree on an object" in model["refused"]["interface"]
+    assert 'field = "voxel"' in (run / "config.toml").read_text()
+    assert "model: interface cannot start" in capsys.readouterr().err
+    assert json.loads((run / "results.json").read_text())["iterations"] == 4

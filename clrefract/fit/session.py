@@ -115,13 +115,18 @@ def choose_model(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> Fi
     if len(names) == 1:
         return start_run(dataset, folder, candidate_config(cfg, names[0]), stream)
     probing = world().size == 1
-    scores, probes = {}, {}
+    scores, probes, refused = {}, {}, {}
     for name in names:
         sub = RunFolder(folder.path / "candidates" / name)
         ensure_out_dir(sub.path, "run folder")
         out.write(f"model: starting {name}\n")
         if not sub.holds_run():  # a candidate started before is taken up
-            start_run(dataset, sub, candidate_config(cfg, name), stream, name == names[0])
+            try:
+                start_run(dataset, sub, candidate_config(cfg, name), stream, name == names[0])
+            except ClrefractError as exc:  # a gas has no surface for an interface to start on
+                refused[name] = str(exc)
+                out.write(f"model: {name} cannot start: {exc}\n")
+                continue
         cand = prepare_fit(dataset, sub.path, None, resume=True, stream=stream)
         if probing:
             try:
@@ -130,13 +135,16 @@ def choose_model(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> Fi
                 out.write(f"model: {name}: {exc}\n")
             probes[name] = cand.it
         scores[name] = float(cand.best.loss if cand.best.found else cand.held_out_loss())
+    if not scores:
+        raise ClrefractError(next(iter(refused.values())))
     best = min(scores, key=scores.get)
     for name in START_FILES:
         src = folder.path / "candidates" / best / name
         if src.is_file():
             shutil.copy2(src, folder.path / name)
     folder.write_json(
-        "model.json", {"chosen": best, "held_out_loss": scores, "probe_iterations": probes}
+        "model.json",
+        {"chosen": best, "held_out_loss": scores, "probe_iterations": probes, "refused": refused},
     )
     out.write(
         "model: "

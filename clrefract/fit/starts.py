@@ -89,7 +89,7 @@ class Hulls:
         if not hull.found:
             raise ClrefractError(
                 f"{self.ds.root}: the refraction masks do not agree on an object (a faint "
-                "medium such as gas?); a level set needs a surface: use --field voxel"
+                "medium such as gas?); a surface model needs one: use --field voxel"
             )
         inside = np.argwhere(hull.distance > -hull.width)
         ax = [np.linspace(box.lo[a], box.hi[a], 48) for a in range(3)]
