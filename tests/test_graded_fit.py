@@ -81,3 +81,36 @@ def test_the_default_model_fits_a_gas_plume_whose_masks_hold_no_object(tmp_path,
     assert 'field = "voxel"' in (run / "config.toml").read_text()
     assert "model: interface cannot start" in capsys.readouterr().err
     assert json.loads((run / "results.json").read_text())["iterations"] == 4
+
+
+def test_masks_that_mark_under_a_hundredth_of_the_pixels_draw_no_rays():
+    """A faint medium's masks mark a few hundred of its strongest pixels, not an object:
+    under MIN_MASK_COVERAGE of the training pixels no ray is marked, so batches, validation
+    and the fixed mask batches draw from all pixels alike; at or above it, the masks' rays
+    (grown by 2 pixels) make mask_share of a batch."""
+    import numpy as np
+    from scipy.ndimage import binary_dilation
+
+    from clrefract.fit.config import FitConfig
+    from clrefract.fit.rays import MIN_MASK_COVERAGE, batch_indices, marked_rays
+
+    views, side = 6, 24
+    bound = MIN_MASK_COVERAGE * views * side * side
+
+    def masks_with(square: int) -> list:
+        """A square x square square marked in the third view."""
+        masks = [np.zeros((side, side), bool) for _ in range(views)]
+        masks[2][8 : 8 + square, 8 : 8 + square] = True
+        return masks
+
+    few = masks_with(1)
+    assert binary_dilation(few[2], iterations=2).sum() < bound
+    assert len(marked_rays(few)) == 0
+    many = masks_with(3)
+    grown = binary_dilation(many[2], iterations=2)
+    assert grown.sum() >= bound
+    marked = marked_rays(many)
+    assert np.array_equal(marked, 2 * side * side + np.flatnonzero(grown))
+    cfg = FitConfig(field="voxel", mask_share=0.8, batch=256)
+    idx = batch_indices(cfg, 1, np.arange(views * side * side), marked)
+    assert np.isin(idx, marked).sum() >= round(0.8 * 256)

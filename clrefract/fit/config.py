@@ -336,7 +336,8 @@ HELP = {
     "shell_starts": "level sets: also try the hull hollowed to shells 2, 4 and 6 cells deep "
     "(a bowl, a glass)",
     "mask_share": "share of each training batch drawn from the refraction masks (0: all "
-    "pixels alike; from the command line, a voxel grid 0.8)",
+    "pixels alike; from the command line, a voxel grid 0.8); masks that mark under 1% of "
+    "the pixels (a faint gas) mark no object and are not drawn from",
     "block": "compare training images by blocks of this many pixels a side at first, halving "
     "to single pixels by --block-until (0 or 1: pixels throughout)",
     "block_until": "fraction of the iterations by which the blocks reach single pixels",
