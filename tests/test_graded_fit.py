@@ -114,3 +114,40 @@ def test_masks_that_mark_under_a_hundredth_of_the_pixels_draw_no_rays():
     cfg = FitConfig(field="voxel", mask_share=0.8, batch=256)
     idx = batch_indices(cfg, 1, np.arange(views * side * side), marked)
     assert np.isin(idx, marked).sum() >= round(0.8 * 256)
+
+
+def test_a_calibrated_rate_halves_when_the_held_out_loss_leaves_its_best_not_on_noise():
+    """The descent's calibrated rate halves (and config.toml says so) at a validation whose
+    held-out loss is more than OVERSHOOT above the run's best, as an overshot faint medium's
+    is, or a lens drifting off its best; rises within it (the graded set's noise, up to 2.3%
+    between validations) leave the rate, where halving on each froze the Luneburg lens and
+    the GRIN scenes at their starts."""
+    from types import SimpleNamespace
+
+    from clrefract.fit.optimizers import OVERSHOOT, SmoothedDescent
+
+    written = []
+    fit = SimpleNamespace(
+        params=[0.0] * 8,
+        groups=lambda: None,
+        kind=SimpleNamespace(calibrates_descent=True),
+        cfg=SimpleNamespace(lr=4e-3),
+        out=SimpleNamespace(write_config=lambda cfg: written.append(cfg.lr)),
+        best=SimpleNamespace(loss=float("inf")),
+    )
+    opt = SmoothedDescent(fit)
+
+    def validate(loss):  # as the loop does: the best first, then the optimiser
+        fit.best.loss = min(fit.best.loss, loss)
+        opt.validated(fit, loss)
+
+    assert OVERSHOOT >= 0.023  # above the noise measured
+    for loss in (0.0200, 0.0195, 0.0199, 0.0197, 0.0201, 0.0196):  # 2.1% and 3.1% over best
+        validate(loss)
+    assert fit.cfg.lr == 4e-3 and written == []
+    validate(0.0195 * (1 + OVERSHOOT) * 1.01)  # a drift past OVERSHOOT
+    assert fit.cfg.lr == 2e-3 and written == [2e-3]
+    validate(0.03)  # still off its best: halves again
+    assert fit.cfg.lr == 1e-3 and written == [2e-3, 1e-3]
+    validate(0.0190)  # a new best
+    assert fit.cfg.lr == 1e-3
