@@ -97,8 +97,8 @@ inline realv field_eval(FIELD_PARAMS, realv x, realv y, realv z, realv *gx, real
  * dependent evaluations, so latency, not throughput, sets its pace), n added to the exponent
  * bits, rint by adding 1.5 2^23. q is clamped at -100, where a term is far below float32's
  * resolution of eta, but the gradient's products stay normal: at -125 they were denormal far
- * from a blob, and x86 takes a slow path on each (the blobs traced 14% faster). PoCL's exp
- * and rint took about twice the instructions (their range checks). */
+ * from a blob, and x86 takes a slow path on each. PoCL's exp and rint took about twice the
+ * instructions (their range checks). */
 #ifdef REAL_IS_DOUBLE
 #define blob_exp2 exp2
 #else

@@ -16,6 +16,7 @@ from ..imageio import ensure_out_dir
 from .config import FitConfig
 from .kinds import candidate_config, kind_of, make_field
 from .runfolder import START_FILES, RunFolder
+from .starts import NoObject
 from .trainer import Fit
 
 
@@ -123,7 +124,7 @@ def choose_model(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> Fi
         if not sub.holds_run():  # a candidate started before is taken up
             try:
                 start_run(dataset, sub, candidate_config(cfg, name), stream, name == names[0])
-            except ClrefractError as exc:  # a gas has no surface for an interface to start on
+            except NoObject as exc:  # a gas has no surface for an interface to start on
                 refused[name] = str(exc)
                 out.write(f"model: {name} cannot start: {exc}\n")
                 continue

@@ -15,6 +15,12 @@ from .distil import fit_to_field
 from .kinds import guide_config, make_field
 from .rays import Tag
 
+
+class NoObject(ClrefractError):
+    """The refraction masks agree on no object (a faint gas): nothing for a surface to start
+    from."""
+
+
 # the start search's candidates: a level set's coarse offsets (cells) searched jointly with
 # the index, then line searches (index step, offset step in cells) of LINE_TRIES each; a
 # voxel grid's offsets (half cells) with a full index search each, then VOXEL_FINE indices
@@ -87,7 +93,7 @@ class Hulls:
         box = self.ds.box
         hull = self.visual(box, 48)
         if not hull.found:
-            raise ClrefractError(
+            raise NoObject(
                 f"{self.ds.root}: the refraction masks do not agree on an object (a faint "
                 "medium such as gas?); a surface model needs one: use --field voxel"
             )
