@@ -310,6 +310,7 @@ def test_tiny_hashgrid_fit_cuts_the_loss(blob_dataset, tmp_path):
             lr_mlp=0.03,
             env_blur=0.0,
             init="empty",
+            optimizer="adam",
         ),
     )
     fit = Fit(blob_dataset, tmp_path, cfg, stream=io.StringIO())

@@ -316,7 +316,7 @@ def test_hash_grid_from_the_hull_defaults_to_its_line_search_at_half_a_millimetr
     rays a step, 32 steps, each validated, the grid fitted to the best; what a file or a flag
     says wins, and the resolved values survive config.toml. Other fields and a start from
     empty space keep Adam at 1 mm."""
-    from clrefract.fit import step_mm, to_toml
+    from clrefract.fit import hashgrid_config, kind_of, step_mm, to_toml
 
     hg = load_config(None, dict(field="hashgrid"))
     assert (hg.optimizer, hg.width, step_mm(hg)) == ("line-search", 0.5, 0.125)
@@ -329,17 +329,25 @@ def test_hash_grid_from_the_hull_defaults_to_its_line_search_at_half_a_millimetr
     assert (from_file.line_batch, from_file.iterations, from_file.width) == (4096, 3, 0.5)
     (tmp_path / "config.toml").write_text(to_toml(hg))
     assert load_config(tmp_path / "config.toml", {}) == hg
-    for other in (dict(field="hashgrid", init="empty"), dict(field="levelset")):
-        cfg = load_config(None, other)
-        assert (cfg.optimizer, cfg.width, cfg.iterations) == ("adam", 1.0, 600), other
-    # a voxel grid (FitConfig's own field) descends, most rays from the masks
-    vox = load_config(None, {})
-    assert (vox.optimizer, vox.lr, vox.mask_share, vox.adjoint_growth_max) == (
-        "descent",
-        5e-3,
-        0.8,
-        3.0,
-    )
+    levelset = load_config(None, dict(field="levelset"))
+    assert (levelset.optimizer, levelset.width, levelset.iterations) == ("adam", 1.0, 600)
+    # a voxel grid (FitConfig's own field) descends, most rays from the masks; so does a hash
+    # grid from empty space (a graded medium), following a voxel grid, unless told otherwise
+    for graded in (
+        {},
+        dict(field="hashgrid", init="empty"),
+        dict(field="hashgrid", optimizer="descent"),
+    ):
+        cfg = load_config(None, graded)
+        got = (cfg.optimizer, cfg.lr, cfg.mask_share, cfg.adjoint_growth_max, cfg.width)
+        assert got == ("descent", 5e-3, 0.8, 3.0, 1.0), graded
+        assert (cfg.descent_sigma, cfg.descent_sigma_final) == (8.0, 2.0), graded
+        assert kind_of(cfg).guided(cfg) == (cfg.field == "hashgrid"), graded
+        assert cfg.field != "hashgrid" or hashgrid_config(cfg).output == "sigmoid", graded
+    adam = load_config(None, dict(field="hashgrid", init="empty", optimizer="adam"))
+    assert (adam.optimizer, adam.mask_share, kind_of(adam).guided(adam)) == ("adam", 0.0, False)
+    with pytest.raises(ClrefractError, match="descent follows a graded medium"):
+        load_config(None, dict(field="hashgrid", optimizer="descent", output="ramp")).validate()
     told = load_config(None, dict(optimizer="adam", mask_share=0.0))
     assert (told.optimizer, told.mask_share, told.iterations) == ("adam", 0.0, 600)
     ls = load_config(None, dict(field="levelset", optimizer="line-search"))
@@ -355,11 +363,13 @@ def test_hash_grid_from_the_hull_defaults_to_its_line_search_at_half_a_millimetr
         ("hull_carve", float("nan"), "hull_carve must be in"),
         ("mask_threshold", 0.0, "mask_threshold must be in"),
         ("free_cells", -2, "free_cells must be at least 0"),
+        ("descent_sigma_final", -1.0, "descent_sigma_final must be at least 0"),
+        ("descent_sigma", float("inf"), "descent_sigma must be at least 0"),
     ],
 )
 def test_hull_settings_out_of_range_are_refused(tmp_path, key, value, message):
-    """The hull's shares, the mask threshold and the free band: a value outside its range
-    names the key, from a config file as from overrides."""
+    """The hull's shares, the mask threshold, the free band and the descent's smoothing: a
+    value outside its range names the key, from a config file as from overrides."""
     with pytest.raises(ClrefractError, match=message):
         load_config(None, {key: value}).validate()
     if value == value:  # TOML has no NaN literal worth writing here

@@ -34,6 +34,7 @@ def test_six_cheap_steps_of_hash_grid_descent_lower_the_held_out_loss(lens, tmp_
     cfg = load_config(
         None,
         dict(field="hashgrid", init="empty", eta_max=1.5, levels=4, log2_table=12, hidden=16,
+             optimizer="adam",
              distil_iterations=100, batch=1024, step=1.0, iterations=6, val_views=4,
              lr_table=1e-2, lr_mlp=1e-3, validate_every=0, checkpoint_every=0),
     )  # fmt: skip
@@ -55,6 +56,7 @@ def test_hash_grid_descent_lowers_the_held_out_loss_of_a_perturbed_lens(lens, tm
     cfg = load_config(
         None,
         dict(field="hashgrid", init="empty", eta_max=1.5, levels=4, log2_table=12, hidden=16,
+             optimizer="adam",
              distil_iterations=150, batch=2048, iterations=10, val_views=4,
              lr_table=1e-2, lr_mlp=1e-3, validate_every=0, checkpoint_every=0),
     )  # fmt: skip

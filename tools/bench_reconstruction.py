@@ -109,7 +109,8 @@ def bench_scene(scene: str, args) -> dict:
 
         from clrefract.fit import fit_to_field, kind_of
 
-        top = kind_of(cfg).eta_top(cfg, truth.eta)  # the truth's index, not the start's
+        # the truth's index, not the start's; a graded medium's, the run's own top
+        top = kind_of(cfg).eta_top(cfg, truth.eta) if hasattr(truth, "eta") else fit.eta_max
         hc = replace(fit.field.config, eta_max=top)
         ceiling = fit.field.__class__(hc, fit.box, seed=cfg.seed)
         fit_to_field(
@@ -126,7 +127,7 @@ def bench_scene(scene: str, args) -> dict:
     except FitDiverged as exc:  # its best field is scored all the same
         res = {**exc.result, "diverged": str(exc)}
     row["fit"] = {**res, "seconds": prepared + time.perf_counter() - t0}
-    if cfg.field == "levelset" or cfg.init == "hull" and cfg.field == "hashgrid":
+    if cfg.field == "levelset" or cfg.field == "hashgrid" and cfg.optimizer == "line-search":
         # one index inside the surface: how far from the truth
         row["truth_index"] = float(truth.eta)
         init = json.loads((run / "init.json").read_text()) if (run / "init.json").is_file() else {}

@@ -86,6 +86,9 @@ class FitConfig:
     # that no node moves more than lr_phi mm, the index lr_index along its gradient's sign,
     # both decaying by a cosine to lr_final of the rates
     descent_sigma: float = 4.0
+    # the smoothing narrows geometrically to this over the first half of the iterations
+    # (0: it stays descent_sigma): coarse to fine in the gradient, on the grid's own nodes
+    descent_sigma_final: float = 0.0
     keep_growth: float = 10.0
     grad_sigma: tuple = (3.0, 6.0, 12.0)
     line_steps: tuple = (0.003, 0.01, 0.03, 0.1)
@@ -198,6 +201,10 @@ class FitConfig:
                 )
         if not (self.step >= 0 and math.isfinite(self.step)):
             raise ClrefractError(f"step must be positive (or 0: automatic), got {self.step}")
+        for name in ("descent_sigma", "descent_sigma_final"):
+            mm = getattr(self, name)
+            if not (mm >= 0 and math.isfinite(mm)):
+                raise ClrefractError(f"{name} must be at least 0 (mm), got {mm}")
         if not (self.width > 0 and math.isfinite(self.width)):
             raise ClrefractError(f"width must be positive, got {self.width}")
         if not (self.diverge_factor == 0 or 1 < self.diverge_factor < math.inf):
@@ -305,9 +312,12 @@ HELP = {
     "optimizer": "adam, or line-search (level sets, and hash grids from the hull through their "
     "level set: the rays whose adjoint stays tame, a smoothed shape gradient and the best of "
     "a few moves along it), or descent (interfaces and voxel grids: a smoothed, bounded step "
-    "of the grid) (default: adam; a hash grid from the hull line-search; an interface and, "
-    "from the command line, a voxel grid descent)",
+    "of the grid; hash grids follow a voxel grid's) (default: adam; a hash grid from the hull "
+    "line-search, from empty space descent; an interface and, from the command line, a voxel "
+    "grid descent)",
     "descent_sigma": "descent: the grid gradient's smoothing, mm",
+    "descent_sigma_final": "descent: the smoothing narrows geometrically to this, mm (at least "
+    "1.25 cells), over the first half of the iterations (0: it stays descent_sigma)",
     "keep_growth": "line search: keep the rays whose adjoint grows at most this factor",
     "grad_sigma": "line search: smooth the shape gradient over these scales, cells (each "
     "weighted by its square)",

@@ -45,9 +45,19 @@ INTERFACE_DEFAULTS = dict(
 # 400 steps: Adam (5e-3 or 1e-3, from empty space or the hull) kept its start on the blob
 # cluster and the Luneburg lens; this took the blobs from empty space to 0.07 of their
 # held-out loss (24.66 to 35.42 dB, eta RMSE 0.0067 to 0.0002) and the lens from the hull to
-# 0.69 (24.61 to 25.77 dB); with a growth of 30 and 4 mm, 0.26 and 0.97
+# 0.69 (24.61 to 25.77 dB); with a growth of 30 and 4 mm, 0.26 and 0.97. A second
+# smoothing, narrowing to 2 mm over the first half, beside the 8 mm one, each its own step:
+# on those 40 views (32^3, where 2 mm is 4), the blob cluster 27.01 -> 35.66 dB, the lens
+# 25.77 -> 25.56; the two sharing one step, 33.00 and 25.49; the narrowing one alone 33.39
+# and 24.89 (on the quick protocol 39.57 for a cluster, 25.95 for the lens; to 1 mm, 37.70
+# and 25.68)
 VOXEL_DEFAULTS = dict(
-    optimizer="descent", lr=5e-3, mask_share=0.8, adjoint_growth_max=3.0, descent_sigma=8.0
+    optimizer="descent",
+    lr=5e-3,
+    mask_share=0.8,
+    adjoint_growth_max=3.0,
+    descent_sigma=8.0,
+    descent_sigma_final=2.0,
 )
 
 
@@ -113,7 +123,12 @@ class FieldKind:
         return self.name
 
     def guided(self, cfg: FitConfig) -> bool:
-        """Whether the fit's steps move a level set that this field is fitted to."""
+        """Whether the fit's steps move another field (its guide: guide_config) that this
+        field is fitted to."""
+        return False
+
+    def shows_guide(self, cfg: FitConfig) -> bool:
+        """Whether a run in progress shows its guide: the grid follows it only at the end."""
         return False
 
     def object_box(self, cfg: FitConfig) -> bool:
@@ -325,16 +340,23 @@ class LevelSetKind(FieldKind):
 class HashGridKind(FieldKind):
     name = "hashgrid"
     interface = True
-    optimizers = ("adam", "line-search")
+    optimizers = ("adam", "line-search", "descent")
     line_search_iterations = HASHGRID_LINE_SEARCH_ITERATIONS
 
     def defaults(self, items):
-        if items.get("init", FitConfig.init) == "hull":
+        init = items.get("init", FitConfig.init)
+        if items.get("optimizer", "descent" if init == "empty" else None) == "descent":
+            # a graded medium: the grid follows a voxel grid's smoothed descent (its guide).
+            # From empty space, 200 Adam steps at the hull's rates left a 30-view blob
+            # cluster at 0.97 of its held-out loss, in 14 minutes
+            items.setdefault("optimizer", "descent")
+            for k, v in VOXEL_DEFAULTS.items():
+                items.setdefault(k, v)
+        elif init == "hull":
             for k, v in HASHGRID_HULL_DEFAULTS.items():
                 items.setdefault(k, v)
         super().defaults(items)
-        guided = items.get("init", FitConfig.init) == "hull"
-        if items.get("optimizer") == "line-search" and guided:
+        if items.get("optimizer") == "line-search" and init == "hull":
             if items.get("adjoint") != "discrete":
                 # the level set it follows skips (the grid's own rays never do): exact in
                 # float64, and the quick drop's fit took 1,203 s instead of 1,497
@@ -352,6 +374,11 @@ class HashGridKind(FieldKind):
                 "a hash grid with the ramp output starts from the visual hull (init = 'hull'):"
                 " from empty space its output is flat and has no gradient"
             )
+        if cfg.output == "ramp" and cfg.optimizer == "descent":
+            raise ClrefractError(
+                "a hash grid's descent follows a graded medium's voxel grid: use output = "
+                "'sigmoid' (a ramp holds a surface)"
+            )
         check_table(cfg.levels, cfg.log2_table, cfg.features)
         from ..limits import check_count
 
@@ -359,7 +386,7 @@ class HashGridKind(FieldKind):
 
     def output(self, cfg) -> str:
         """ "ramp" from the hull (an interface), "sigmoid" from empty space, unless told."""
-        return cfg.output or ("ramp" if cfg.init == "hull" else "sigmoid")
+        return cfg.output or ("sigmoid" if self.graded(cfg) or cfg.init != "hull" else "ramp")
 
     def default_step(self, cfg):
         # a quarter of the interface: at half, the truth fitted into a hash grid renders
@@ -368,7 +395,7 @@ class HashGridKind(FieldKind):
         return cfg.width / 4 if self.output(cfg) == "ramp" else cfg.width / 8
 
     def sized_early(self, cfg):
-        return cfg.init != "hull"  # a graded medium in the dataset's box
+        return not self.object_box(cfg)  # a graded medium in the dataset's box
 
     def early_step(self, box, cfg):
         """From empty space, half a cell of the finest level, as a voxel grid's step: a
@@ -376,15 +403,24 @@ class HashGridKind(FieldKind):
         return voxel_step(box, cfg.n_max)
 
     def skipping_kind(self, cfg):
-        return "levelset" if self.guided(cfg) else None
+        return guide_kind(cfg) if self.guided(cfg) else None
 
     def guided(self, cfg):
-        return cfg.init == "hull" and cfg.optimizer == "line-search"
+        return self.graded(cfg) or (cfg.init == "hull" and cfg.optimizer == "line-search")
+
+    def shows_guide(self, cfg):
+        return self.graded(cfg) or self.guided(cfg) and cfg.refit == "best"
+
+    def graded(self, cfg) -> bool:
+        """Whether the grid follows a voxel grid's smoothed descent (a graded medium)."""
+        return cfg.optimizer == "descent"
 
     def object_box(self, cfg):
-        return cfg.init == "hull"
+        return cfg.init == "hull" and not self.graded(cfg)
 
     def start(self, cfg):
+        if self.graded(cfg):
+            return "voxel-guide"
         return "distilled" if cfg.init == "hull" else "empty"
 
     def make(self, cfg, box, eta_max, res):
@@ -539,9 +575,18 @@ def step_mm(cfg: FitConfig) -> float:
     return kind_of(cfg).step_mm(cfg)
 
 
+def guide_kind(cfg: FitConfig) -> str:
+    """The kind of field a guided hash grid follows: a graded medium's voxel grid under the
+    smoothed descent, else the level set of its line search."""
+    return "voxel" if cfg.optimizer == "descent" else "levelset"
+
+
 def guide_config(cfg: FitConfig, index: float) -> FitConfig:
-    """The level set a hash grid starts from and its line search follows: the fit's
-    settings with a level set's own step at this glass index."""
+    """The field a hash grid starts from and follows: a voxel grid with the fit's settings
+    (its step, half a cell, as the grid's own), or a level set with a level set's own step
+    at this glass index."""
+    if guide_kind(cfg) == "voxel":
+        return replace(cfg, field="voxel")
     guide = replace(cfg, field="levelset", step=0.0)
     guide.step = KINDS["levelset"].step_mm(guide) * interface_step_scale(index)
     return guide

@@ -14,7 +14,7 @@ from .. import start_losses
 from ..errors import ClrefractError
 from ..imageio import ensure_out_dir
 from .config import FitConfig
-from .kinds import candidate_config, kind_of, make_field
+from .kinds import candidate_config, guide_config, kind_of, make_field
 from .runfolder import START_FILES, RunFolder
 from .starts import NoObject
 from .trainer import Fit
@@ -178,7 +178,8 @@ def extend_run(out: Path, iterations: int) -> None:
 
 def field_from_run(run: Path):
     """The field of a run folder at its latest checkpoint (for rendering a run in progress):
-    a hash grid's level set where the grid is fitted to it only at the end (refit = "best")."""
+    a hash grid's guide where the grid is fitted to it only at the end (a level set's with
+    refit = "best", a graded medium's voxel grid)."""
     folder = RunFolder(run)
     cfg = folder.config()
     try:
@@ -187,8 +188,8 @@ def field_from_run(run: Path):
     except ClrefractError as exc:
         raise ClrefractError(f"{run}: cannot read the run's checkpoint ({exc})") from None
     params, res, top = ckpt.params, ckpt.resolution, ckpt.eta_max or top
-    if ckpt.guide and cfg.refit == "best":
-        cfg, params = replace(cfg, field="levelset"), ckpt.guide["guide_params"]
+    if ckpt.guide and kind_of(cfg).shows_guide(cfg):
+        cfg, params = guide_config(cfg, top), ckpt.guide["guide_params"]
         top, res = float(ckpt.guide["guide_eta_max"]), int(ckpt.guide["guide_res"])
     field = make_field(cfg, box, top, res)
     field.set_data(params)

@@ -1,6 +1,7 @@
 """Where a fit starts: empty space, or the visual hull of the refraction masks filled with the
 index and grown by the offset of lowest loss (for a level set, also smoothed, tightened or
-hollowed); a hash grid starts as that level set, distilled into it.
+hollowed); a hash grid starts as that level set, distilled into it, or for a graded
+medium as a voxel grid's start.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from ..errors import ClrefractError
 from ..log import Progress
 from .config import to_toml
 from .distil import fit_to_field
-from .kinds import guide_config, make_field
+from .kinds import KINDS, guide_config, make_field
 from .rays import Tag
 
 
@@ -150,6 +151,26 @@ class DistilledStart:
         return guide, made_with
 
 
+class VoxelGuideStart:
+    """A hash grid for a graded medium starts as a voxel grid does (its hull filled, free
+    near it; or empty space), fitted to that grid's eta. The voxel grid (and the eta_max it
+    was made with) is returned: a smoothed descent moves it, and the hash grid follows."""
+
+    def run(self, fit, res: int):
+        cfg = guide_config(fit.cfg, fit.eta_max)
+        kind = KINDS[cfg.field]
+        guide = fit.bound_for(make_field(cfg, fit.box, fit.eta_max, cfg.res), kind=kind)
+        if kind.start(cfg) != "empty":
+            HullSearch(fit, guide, levelset=False).fill()
+        # empty space too: a fresh grid's output holds eta about 1e-3 above 1, a gas's
+        # whole contrast
+        rms = distil_start(fit, guide.field)
+        fit.init_info["distilled_rms"] = rms
+        fit.stream.write(f"start: hash grid fitted to the voxel start (eta RMS {rms:.2g})\n")
+        fit.out.write_json("init.json", fit.init_info)
+        return guide, fit.eta_max
+
+
 def distil_start(fit, source) -> float:
     """Bind a fresh hash grid fitted to another field (`source.eval`), in the fit's box;
     the RMS error of eta."""
@@ -172,6 +193,7 @@ STARTS = {
     "voxel-hull": VoxelHullStart,
     "levelset-hull": LevelSetHullStart,
     "distilled": DistilledStart,
+    "voxel-guide": VoxelGuideStart,
 }
 
 

@@ -82,15 +82,17 @@ class Fit:
     def make_field(self, res: int):
         return self.kind.make(self.cfg, self.box, self.eta_max, res)
 
-    def bound_for(self, field, step: float = 0.0) -> Bound:
+    def bound_for(self, field, step: float = 0.0, kind=None) -> Bound:
         """`field` with an engine of the fit's settings (`step` in place of its own) and,
-        where its rays skip, the fit's occupancy."""
+        where its rays skip, the fit's occupancy; the nodes free to move are those of its
+        `kind` (the fit's unless told: a guide's differs)."""
+        kind = kind or self.kind
         engine = engine_for(field, self.box, self.cfg, self.runtime, step)
         skips = self.occupancy if engine.tracer.skip_empty else None
         free = None
-        if self.kind.frees_near_hull(self.cfg):
-            hull = self.hulls.at(self.box, self.kind.resolution(field))
-            free = self.kind.free_nodes(self.cfg, hull)
+        if kind.frees_near_hull(self.cfg):
+            hull = self.hulls.at(self.box, kind.resolution(field))
+            free = kind.free_nodes(self.cfg, hull)
         bound = Bound(field, engine, skips, free)
         bound.upload(self.it)
         return bound
