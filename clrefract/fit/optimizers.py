@@ -238,9 +238,11 @@ class SmoothedDescent(AdamSteps):
     def _calibrate(self, fit, bound, kind, direction, n: int, grid_rate: float) -> float:
         """The run's rate, of grid_rate / 4^k (k = 0 to CALIBRATION_STEPS), kept in
         config.toml: grid_rate itself unless its first step raises a fixed batch's loss, else
-        a quarter of the one that lowers it most; `validated` halves it where later steps
-        overshoot. A medium's contrast spans 1e-3 (a gas) to 0.4 (a graded-index lens), and a
-        step that suits a lens overshoots a plume's whole index; the step of the largest fall,
+        a quarter of the one that lowers it most (none lowering it, the first direction
+        measures no length: a Luneburg lens's took 4^-6 and kept its start); `validated`
+        halves it where later steps overshoot. A medium's contrast spans 1e-3 (a gas) to 0.4
+        (a graded-index lens), and a step that suits a lens overshoots a plume's whole index;
+        the step of the largest fall,
         always, took the blob cluster to 27.43 dB where 5e-3 took it to 33.29. The largest
         fall's step reaches the line's minimum, and repeated it circles it: on a faint gas
         (1.003) it left 0.24-0.82 of the start's held-out loss over 120 steps, its quarter
@@ -263,7 +265,7 @@ class SmoothedDescent(AdamSteps):
         bound.params[:] = start
         bound.field.set_data(bound.params)
         bound.upload(fit.it)
-        k = min(int(np.argmax(fall)) + 1, CALIBRATION_STEPS) if fall[0] < 0 else 0
+        k = min(int(np.argmax(fall)) + 1, CALIBRATION_STEPS) if fall[0] < 0 < max(fall) else 0
         fit.cfg.lr = grid_rate / 4**k
         fit.out.write_config(fit.cfg)
         fit.stream.write(
@@ -428,11 +430,14 @@ class GuidedDescent(SmoothedDescent):
 
     def finish(self, fit) -> dict:
         """The hash grid fitted afresh to the guide's best-validated step (the last without
-        validation); the guide left at its last step, where --resume goes on."""
+        validation; none where that is the start, which it holds); the guide left at its last
+        step, where --resume goes on."""
         best = fit.best
         it, params = best.iteration, best.params
         if params is None:
             it, params = fit.it, self.guide.params.copy()
+        if it == 0:
+            return {}  # the grid holds the start's fit already
         t0 = time.perf_counter()
         self.guide.field.set_data(params)
         rms = fit_to_field(
