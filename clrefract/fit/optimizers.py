@@ -468,14 +468,13 @@ def resumed_guide(fit, ckpt) -> tuple:
             "with optimizer 'adam'?)"
         )
     cfg = guide_config(fit.cfg, fit.ds.scene.eta_range[1])
-    kind = KINDS[cfg.field]
     eta_max = float(state["guide_eta_max"])
     field = make_field(cfg, fit.box, eta_max, int(state["guide_res"]))
     params = np.array(state["guide_params"], np.float64)
     if len(params) != len(field.data()):
         raise ClrefractError(f"{path}: the guide in the checkpoint does not fit its grid")
     field.set_data(params)
-    guide = fit.bound_for(field, cfg.step, kind=kind)
+    guide = fit.guide_bound(field, cfg)
     guide.set_params(params, fit.it)  # and the cells it skips, as the run it continues did
     return guide, eta_max
 

@@ -139,7 +139,7 @@ class DistilledStart:
 
     def run(self, fit, res: int):
         cfg = guide_config(fit.cfg, fit.ds.scene.eta_range[1])
-        guide = fit.bound_for(make_field(cfg, fit.box, fit.eta_max, cfg.res), step=cfg.step)
+        guide = fit.guide_bound(make_field(cfg, fit.box, fit.eta_max, cfg.res), cfg)
         HullSearch(fit, guide, levelset=True).fill()
         made_with = fit.eta_max
         if not fit.cfg.eta_max:
@@ -158,9 +158,8 @@ class VoxelGuideStart:
 
     def run(self, fit, res: int):
         cfg = guide_config(fit.cfg, fit.eta_max)
-        kind = KINDS[cfg.field]
-        guide = fit.bound_for(make_field(cfg, fit.box, fit.eta_max, cfg.res), kind=kind)
-        if kind.start(cfg) != "empty":
+        guide = fit.guide_bound(make_field(cfg, fit.box, fit.eta_max, cfg.res), cfg)
+        if KINDS[cfg.field].start(cfg) != "empty":
             HullSearch(fit, guide, levelset=False).fill()
         # empty space too: a fresh grid's output holds eta about 1e-3 above 1, a gas's
         # whole contrast

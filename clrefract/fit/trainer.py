@@ -97,6 +97,13 @@ class Fit:
         bound.upload(self.it)
         return bound
 
+    def guide_bound(self, field, cfg: FitConfig) -> Bound:
+        """A guide's `field` (of `cfg`: guide_config's) bound as a run of its own kind binds
+        it: its step, and the nodes its kind lets move."""
+        kind = kind_named(cfg.field)
+        step = kind.early_step(self.box, cfg) if kind.sized_early(cfg) else cfg.step
+        return self.bound_for(field, step, kind=kind)
+
     def bind(self, field, step: float = 0.0) -> None:
         """Train `field` from here on."""
         self.bound = self.bound_for(field, step)
