@@ -291,12 +291,15 @@ def test_a_cells_bound_is_the_extreme_of_the_nodes_that_reach_it(n, res):
 
 def test_hash_grids_skip_only_on_the_level_set_they_follow():
     """A hash grid's own rays cannot skip; from the hull its line search traces a level
-    set, and those rays do."""
-    for other in (dict(init="empty"), dict(optimizer="adam")):
+    set, and a graded medium's descent a voxel grid, and those rays do."""
+    for other in (dict(init="empty", optimizer="adam"), dict(optimizer="adam")):
         with pytest.raises(ClrefractError, match="hash grid"):
             load_config(None, dict(field="hashgrid", skip_empty=True, **other))
     cfg = load_config(None, dict(field="hashgrid", skip_empty=True))
     assert kind_of(cfg).skipping_kind(cfg) == "levelset"
+    for graded in (dict(init="empty"), dict(optimizer="descent")):
+        cfg = load_config(None, dict(field="hashgrid", skip_empty=True, **graded))
+        assert kind_of(cfg).skipping_kind(cfg) == "voxel", graded
     with pytest.raises(ClrefractError, match="continuous"):
         load_config(None, dict(field="levelset", skip_empty=True, adjoint="discrete"))
 
