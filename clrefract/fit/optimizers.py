@@ -293,24 +293,36 @@ class LineSearch(AdamSteps):
         return done
 
 
-class GuidedLineSearch(LineSearch):
+class FollowsGuide:
+    """An optimiser that moves another field (its guide) which the fitted one follows: the
+    guide and its top index, kept in the checkpoint."""
+
+    def __init__(self, fit, guide, guide_eta_max: float):
+        super().__init__(fit)
+        self.guide, self.guide_eta_max = guide, guide_eta_max
+
+    @classmethod
+    def resumed(cls, fit, ckpt):
+        """The optimiser of a resumed fit, its guide from the checkpoint."""
+        return cls(fit, *resumed_guide(fit, ckpt))
+
+    def state(self) -> dict:
+        return {
+            **self.adam.state(),
+            "guide_params": self.guide.params,
+            "guide_res": self.guide.field.shape[0],
+            "guide_eta_max": self.guide_eta_max,
+        }
+
+
+class GuidedLineSearch(FollowsGuide, LineSearch):
     """A hash grid from the hull: the line search moves the level set it was distilled from
     (its guide), and the grid is fitted to it, once to the best step (refit = "best", where
     the held-out views judge the level set) or after every move (refit = "step")."""
 
     def __init__(self, fit, guide, guide_eta_max: float):
-        super().__init__(fit)
-        self.guide, self.guide_eta_max = guide, guide_eta_max
+        super().__init__(fit, guide, guide_eta_max)
         self.grid_tracer = None
-
-    @classmethod
-    def resumed(cls, fit, ckpt) -> GuidedLineSearch:
-        """The line search of a resumed fit, its guide from the checkpoint."""
-        guide, eta_max = resumed_guide(fit, ckpt)
-        return cls(fit, guide, eta_max)
-
-    def state(self) -> dict:
-        return guide_state(self.adam.state(), self.guide, self.guide_eta_max)
 
     def judged(self, fit):
         return self.guide if fit.cfg.refit == "best" else fit.bound
@@ -393,25 +405,15 @@ class GuidedLineSearch(LineSearch):
         return {"iteration": it, "distilled_rms": rms, "seconds": time.perf_counter() - t0}
 
 
-class GuidedDescent(SmoothedDescent):
+class GuidedDescent(FollowsGuide, SmoothedDescent):
     """A hash grid for a graded medium: the smoothed descent moves a voxel grid (its guide),
     the held-out views judge it, and the grid is fitted to its best at the end. The descent
     lowers a graded medium's held-out loss in a tenth of the time Adam on the grid's own
     parameters takes to move it at all."""
 
     def __init__(self, fit, guide, guide_eta_max: float):
-        super().__init__(fit)
-        self.guide, self.guide_eta_max = guide, guide_eta_max
+        super().__init__(fit, guide, guide_eta_max)
         self.kind = KINDS[guide_kind(fit.cfg)]
-
-    @classmethod
-    def resumed(cls, fit, ckpt) -> GuidedDescent:
-        """The descent of a resumed fit, its guide from the checkpoint."""
-        guide, eta_max = resumed_guide(fit, ckpt)
-        return cls(fit, guide, eta_max)
-
-    def state(self) -> dict:
-        return guide_state(self.adam.state(), self.guide, self.guide_eta_max)
 
     def judged(self, fit):
         return self.guide
@@ -477,16 +479,6 @@ def resumed_guide(fit, ckpt) -> tuple:
     guide = fit.guide_bound(field, cfg)
     guide.set_params(params, fit.it)  # and the cells it skips, as the run it continues did
     return guide, eta_max
-
-
-def guide_state(adam: dict, guide, eta_max: float) -> dict:
-    """A guided fit's checkpoint state: Adam's, and the guide's parameters, grid and top."""
-    return {
-        **adam,
-        "guide_params": guide.params,
-        "guide_res": guide.field.shape[0],
-        "guide_eta_max": eta_max,
-    }
 
 
 def _timed(row: dict, t0: float) -> dict:
