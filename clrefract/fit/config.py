@@ -86,8 +86,8 @@ class FitConfig:
     # that no node moves more than lr_phi mm, the index lr_index along its gradient's sign,
     # both decaying by a cosine to lr_final of the rates
     descent_sigma: float = 4.0
-    # the smoothing narrows geometrically to this over the first half of the iterations
-    # (0: it stays descent_sigma): coarse to fine in the gradient, on the grid's own nodes
+    # a second smoothing beside descent_sigma's, narrowing geometrically from it to this over
+    # the first half of the iterations (0: none): coarse to fine, on the grid's own nodes
     descent_sigma_final: float = 0.0
     keep_growth: float = 10.0
     grad_sigma: tuple = (3.0, 6.0, 12.0)
@@ -316,8 +316,9 @@ HELP = {
     "line-search, from empty space descent; an interface and, from the command line, a voxel "
     "grid descent)",
     "descent_sigma": "descent: the grid gradient's smoothing, mm",
-    "descent_sigma_final": "descent: the smoothing narrows geometrically to this, mm (at least "
-    "1.25 cells), over the first half of the iterations (0: it stays descent_sigma)",
+    "descent_sigma_final": "descent: a second smoothing of the gradient, each its own step, "
+    "narrowing geometrically from descent_sigma to this, mm (at least 1.25 cells), over the "
+    "first half of the iterations (0: none)",
     "keep_growth": "line search: keep the rays whose adjoint grows at most this factor",
     "grad_sigma": "line search: smooth the shape gradient over these scales, cells (each "
     "weighted by its square)",

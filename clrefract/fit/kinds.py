@@ -583,8 +583,8 @@ def guide_kind(cfg: FitConfig) -> str:
 
 def guide_config(cfg: FitConfig, index: float) -> FitConfig:
     """The field a hash grid starts from and follows: a voxel grid with the fit's settings
-    (its step, half a cell, as the grid's own), or a level set with a level set's own step
-    at this glass index."""
+    (bound as a voxel fit binds its grid: Fit.guide_bound), or a level set with a level
+    set's own step at this glass index."""
     if guide_kind(cfg) == "voxel":
         return replace(cfg, field="voxel")
     guide = replace(cfg, field="levelset", step=0.0)

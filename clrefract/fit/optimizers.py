@@ -129,9 +129,9 @@ CALIBRATION_STEPS = 6
 OVERSHOOT = 0.05
 
 
-# the descent's narrowing smoothing stops at this many cells: at 16^3 over 100 mm, 8 to 2 mm
-# took a blob cluster from empty space to 0.92 of its held-out loss in 100 steps, 8 mm
-# throughout to 0.70 (a node's gradient there is its rays' alone)
+# the descent's narrowing smoothing stops at this many cells: at 16^3 over 100 mm, narrowing
+# alone to 2 mm took a blob cluster from empty space to 0.92 of its held-out loss in 100
+# steps, 8 mm throughout to 0.70 (a node's gradient there is its rays' alone)
 FINEST_CELLS = 1.25
 
 
