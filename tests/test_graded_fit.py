@@ -169,6 +169,8 @@ def test_a_calibrated_rate_halves_when_the_held_out_loss_leaves_its_best_not_on_
         params=[0.0] * 8,
         groups=lambda: None,
         kind=SimpleNamespace(calibrates_descent=True),
+        bound=None,
+        eta_max=1.5,
         cfg=SimpleNamespace(lr=4e-3),
         out=SimpleNamespace(write_config=lambda cfg: written.append(cfg.lr)),
         best=SimpleNamespace(loss=float("inf")),

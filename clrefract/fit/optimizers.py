@@ -169,12 +169,19 @@ class SmoothedDescent(AdamSteps):
     views down). Scalars after the grid (an interface's index) move their rate along their
     gradient's sign. Both decay by a cosine to lr_final."""
 
+    def nodes(self, fit) -> tuple:
+        """The bound field whose nodes descend, its kind and its top index: the fit's own."""
+        return fit.bound, fit.kind, fit.eta_max
+
+    def judged(self, fit):
+        return self.nodes(fit)[0]
+
+    def validation_loss(self, fit) -> float:
+        return fit.objective.held_out_loss(self.nodes(fit)[0].tracer)
+
     def step(self, fit) -> dict:
         self._regrid(fit)
-        return self.descend(fit, fit.bound, fit.kind)
-
-    def descend(self, fit, bound, kind) -> dict:
-        """One step of `bound`'s nodes (a `kind` of field): the fit's own, or its guide's."""
+        bound, kind, eta_max = self.nodes(fit)
         cfg = fit.cfg
         field = bound.field
         idx, side = fit.rays.batch(fit.it)
@@ -197,10 +204,10 @@ class SmoothedDescent(AdamSteps):
             1 + np.cos(np.pi * fit.it / cfg.iterations)
         )
         if fit.it == 0 and kind.calibrates_descent and np.any(g):
-            grid_rate = self._calibrate(fit, bound, kind, g, n, grid_rate)
+            grid_rate = self._calibrate(fit, bound, kind, eta_max, g, n, grid_rate)
         bound.params[:n] -= grid_rate * rate * g
         bound.params[n:] -= scalar_rate * rate * np.sign(grad[n:])
-        kind.project(cfg, bound.params, self.eta_max(fit), bound.free)
+        kind.project(cfg, bound.params, eta_max, bound.free)
         field.set_data(bound.params)
         bound.upload(fit.it, stepped=True)
         dt = time.perf_counter() - t0
@@ -219,23 +226,16 @@ class SmoothedDescent(AdamSteps):
             **kind.descent_row(field),
         }
 
-    def eta_max(self, fit) -> float:
-        """The top index of the nodes that descend."""
-        return fit.eta_max
-
-    def calibrates(self, fit) -> bool:
-        return fit.kind.calibrates_descent
-
     def validated(self, fit, loss: float) -> None:
         """A calibrated rate halves (in config.toml) at each validation whose held-out loss is
         more than OVERSHOOT above the run's best (tracked before this is called): a first
         step's best length, repeated, overshot a faint blob's whole index (1.003: the test
         views lost 2.2 dB in 60 steps)."""
-        if self.calibrates(fit) and loss > fit.best.loss * (1 + OVERSHOOT):
+        if self.nodes(fit)[1].calibrates_descent and loss > fit.best.loss * (1 + OVERSHOOT):
             fit.cfg.lr /= 2
             fit.out.write_config(fit.cfg)
 
-    def _calibrate(self, fit, bound, kind, direction, n: int, grid_rate: float) -> float:
+    def _calibrate(self, fit, bound, kind, eta_max, direction, n: int, grid_rate: float) -> float:
         """The run's rate, of grid_rate / 4^k (k = 0 to CALIBRATION_STEPS), kept in
         config.toml: grid_rate itself unless its first step raises a fixed batch's loss, else
         a quarter of the one that lowers it most (none lowering it, the first direction
@@ -258,7 +258,7 @@ class SmoothedDescent(AdamSteps):
         fall = []
         for k in range(CALIBRATION_STEPS + 1):
             bound.params[:n] = start[:n] - grid_rate / 4**k * direction
-            kind.project(fit.cfg, bound.params, self.eta_max(fit), bound.free)
+            kind.project(fit.cfg, bound.params, eta_max, bound.free)
             bound.field.set_data(bound.params)
             bound.upload(fit.it)
             fall.append(base - fit.objective.loss(bound.tracer, idx))
@@ -415,20 +415,8 @@ class GuidedDescent(FollowsGuide, SmoothedDescent):
         super().__init__(fit, guide, guide_eta_max)
         self.kind = KINDS[guide_kind(fit.cfg)]
 
-    def judged(self, fit):
-        return self.guide
-
-    def validation_loss(self, fit) -> float:
-        return fit.objective.held_out_loss(self.guide.tracer)
-
-    def step(self, fit) -> dict:
-        return self.descend(fit, self.guide, self.kind)
-
-    def eta_max(self, fit) -> float:
-        return self.guide_eta_max
-
-    def calibrates(self, fit) -> bool:
-        return self.kind.calibrates_descent
+    def nodes(self, fit) -> tuple:
+        return self.guide, self.kind, self.guide_eta_max
 
     def finish(self, fit) -> dict:
         """The hash grid fitted afresh to the guide's best-validated step (the last without
