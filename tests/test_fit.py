@@ -365,11 +365,14 @@ def test_hash_grid_from_the_hull_defaults_to_its_line_search_at_half_a_millimetr
         ("free_cells", -2, "free_cells must be at least 0"),
         ("descent_sigma_final", -1.0, "descent_sigma_final must be at least 0"),
         ("descent_sigma", float("inf"), "descent_sigma must be at least 0"),
+        ("lr_max", -1e-3, "lr_max must be at least 0"),
+        ("lr_max", float("nan"), "lr_max must be at least 0"),
     ],
 )
 def test_hull_settings_out_of_range_are_refused(tmp_path, key, value, message):
-    """The hull's shares, the mask threshold, the free band and the descent's smoothing: a
-    value outside its range names the key, from a config file as from overrides."""
+    """The hull's shares, the mask threshold, the free band, the descent's smoothing and its
+    rate's ceiling: a value outside its range names the key, from a config file as from
+    overrides."""
     with pytest.raises(ClrefractError, match=message):
         load_config(None, {key: value}).validate()
     if value == value:  # TOML has no NaN literal worth writing here

@@ -74,6 +74,9 @@ class FitConfig:
     lr_table: float = 1e-3
     lr_mlp: float = 1e-4
     lr_final: float = 0.1  # learning rates decay exponentially to this fraction
+    # a calibrated descent's ceiling: the rate it tried first, set by its calibration (0: the
+    # rate does not grow back). A faint plume's calibrated rate was still its best at the end
+    lr_max: float = 0.0
     # "adam", or "line-search" (level sets: each step keeps the rays whose adjoint grows at
     # most keep_growth, smooths the phi gradient over the grad_sigma scales (cells, each
     # weighted by its square) and takes the best of line_steps mm along it;
@@ -201,6 +204,8 @@ class FitConfig:
                 )
         if not (self.step >= 0 and math.isfinite(self.step)):
             raise ClrefractError(f"step must be positive (or 0: automatic), got {self.step}")
+        if not (self.lr_max >= 0 and math.isfinite(self.lr_max)):
+            raise ClrefractError(f"lr_max must be at least 0, got {self.lr_max}")
         for name in ("descent_sigma", "descent_sigma_final"):
             mm = getattr(self, name)
             if not (mm >= 0 and math.isfinite(mm)):
@@ -309,6 +314,8 @@ HELP = {
     "lr_table": "learning rate of hash tables",
     "lr_mlp": "learning rate of the MLP",
     "lr_final": "learning rates decay exponentially to this fraction",
+    "lr_max": "descent: the rate a calibrated step grows back to, x1.5 at each validation "
+    "that finds a better held-out loss (set by the calibration; 0: it does not grow)",
     "optimizer": "adam, or line-search (level sets, and hash grids from the hull through their "
     "level set: the rays whose adjoint stays tame, a smoothed shape gradient and the best of "
     "a few moves along it), or descent (interfaces and voxel grids: a smoothed, bounded step "

@@ -129,6 +129,13 @@ CALIBRATION_STEPS = 6
 OVERSHOOT = 0.05
 
 
+# A validation that finds a better held-out loss grows a calibrated rate by this (up to
+# lr_max). Small graded set (40 views of 64, 32^3, 400 steps), test PSNR without / with:
+# plume 67.33 / 67.90 (its rate went from 1.95e-5 to 1.4e-4), blob cluster 35.66 / 36.34,
+# Luneburg lens 25.56-25.70 / 25.79, GRIN rod 27.87 / 27.95; growth by 2 not measured
+GROWTH = 1.5
+
+
 # the descent's narrowing smoothing stops at this many cells: at 16^3 over 100 mm, narrowing
 # alone to 2 mm took a blob cluster from empty space to 0.92 of its held-out loss in 100
 # steps, 8 mm throughout to 0.70 (a node's gradient there is its rays' alone)
@@ -222,6 +229,7 @@ class SmoothedDescent(AdamSteps):
             "rays_per_s": len(idx) / dt,
             "seconds": dt,
             "rate": float(rate),
+            "lr": float(grid_rate),  # as calibrated, halved and grown
             "steps_per_ray": r.steps / len(idx),
             **kind.descent_row(field),
         }
@@ -230,17 +238,26 @@ class SmoothedDescent(AdamSteps):
         """A calibrated rate halves (in config.toml) at each validation whose held-out loss is
         more than OVERSHOOT above the run's best (tracked before this is called): a first
         step's best length, repeated, overshot a faint blob's whole index (1.003: the test
-        views lost 2.2 dB in 60 steps)."""
-        if self.nodes(fit)[1].calibrates_descent and loss > fit.best.loss * (1 + OVERSHOOT):
-            fit.cfg.lr /= 2
-            fit.out.write_config(fit.cfg)
+        views lost 2.2 dB in 60 steps). A validation that is the run's new best grows it by
+        GROWTH, up to lr_max: one batch's calibration is no measure of the whole run."""
+        cfg = fit.cfg
+        if not self.nodes(fit)[1].calibrates_descent:
+            return
+        if loss > fit.best.loss * (1 + OVERSHOOT):
+            cfg.lr /= 2
+        elif fit.it > 0 and fit.best.iteration == fit.it and cfg.lr < cfg.lr_max:
+            cfg.lr = min(cfg.lr * GROWTH, cfg.lr_max)
+        else:
+            return
+        fit.out.write_config(cfg)
 
     def _calibrate(self, fit, bound, kind, eta_max, direction, n: int, grid_rate: float) -> float:
         """The run's rate, of grid_rate / 4^k (k = 0 to CALIBRATION_STEPS), kept in
-        config.toml: grid_rate itself unless its first step raises a fixed batch's loss, else
-        a quarter of the one that lowers it most (none lowering it, the first direction
-        measures no length: a Luneburg lens's took 4^-6 and kept its start); `validated`
-        halves it where later steps overshoot. A medium's contrast spans 1e-3 (a gas) to 0.4
+        config.toml with grid_rate as its lr_max: grid_rate itself unless its first step
+        raises a fixed batch's loss, else a quarter of the one that lowers it most (none
+        lowering it, the first direction measures no length: a Luneburg lens's took 4^-6 and
+        kept its start); `validated` halves it where later steps overshoot and grows it back
+        where they find better. A medium's contrast spans 1e-3 (a gas) to 0.4
         (a graded-index lens), and a step that suits a lens overshoots a plume's whole index;
         the step of the largest fall,
         always, took the blob cluster to 27.43 dB where 5e-3 took it to 33.29. The largest
@@ -266,7 +283,7 @@ class SmoothedDescent(AdamSteps):
         bound.field.set_data(bound.params)
         bound.upload(fit.it)
         k = min(int(np.argmax(fall)) + 1, CALIBRATION_STEPS) if fall[0] < 0 < max(fall) else 0
-        fit.cfg.lr = grid_rate / 4**k
+        fit.cfg.lr, fit.cfg.lr_max = grid_rate / 4**k, grid_rate
         fit.out.write_config(fit.cfg)
         fit.stream.write(
             f"descent: a voxel's step {fit.cfg.lr:.3g} ({grid_rate:g} / 4^{k}), kept in "
