@@ -19,7 +19,7 @@ index beside the truth's.
     python tools/bench_reconstruction.py [--field levelset|voxel|hashgrid]
         [--suite paper|family] [--scenes sphere,prism,drop] [--res 128] [--grid 64]
         [--width MM] [--iterations N] [--config FIT.toml]
-        [--json bench_results/reconstruction.json] [--shard i/n] [--merge]
+        [--json bench_results/reconstruction.json] [--shard i/n] [--merge] [--page PAGE.md]
 
 --iterations defaults to the quick protocol's 100 Adam steps, or the fit's own count where
 its optimiser is the line search (a hash grid's default: 32); --width and --config's keys
@@ -27,7 +27,8 @@ default to the fit's.
 
 --shard i/n runs every n-th scene from the i-th and writes reconstruction.shard-i-of-n.json
 (n jobs of a cluster array, or n processes on one machine); --merge then reads all n, prints
-the whole table and writes --json.
+the whole table and writes --json. --page writes the table as a Markdown page (with the
+command that measures it again), as docs/graded.md is written.
 """
 
 from __future__ import annotations
@@ -77,7 +78,10 @@ def bench_scene(scene: str, args) -> dict:
     )
     if args.iterations is None and cfg.optimizer == "adam" and cfg.field != "voxel":
         cfg.iterations = ADAM_ITERATIONS
+    from clrefract.runtime import default_runtime
+
     row: dict = {"scene": scene, "field": args.field, "res": args.res, "grid": args.grid}
+    row["device"] = default_runtime().info.driver
     run = Path(args.runs) / scene.replace(":", "-")
     shutil.rmtree(run, ignore_errors=True)
     t0 = time.perf_counter()
@@ -173,6 +177,7 @@ def main() -> None:
     ap.add_argument("--json", default="bench_results/reconstruction.json")
     ap.add_argument("--shard", default="", help="i/n: run every n-th scene from the i-th")
     ap.add_argument("--merge", action="store_true", help="merge the shards' JSON files")
+    ap.add_argument("--page", default="", help="also write the table as this Markdown page")
     args = ap.parse_args()
 
     from clrefract import shards
@@ -215,6 +220,55 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"args": vars(args), "scenes": rows}, indent=2))
     print(f"wrote {out}")
+    if args.page:
+        Path(args.page).write_text(page(rows, args))
+        print(f"wrote {args.page}")
+
+
+def page(rows: list[dict], args) -> str:
+    """The table as a Markdown page: test PSNR of the empty box, the start, the fit and the
+    ceiling, per scene, with the command that measures it again."""
+    devices = sorted({r.get("device", "not recorded") for r in rows})
+    cmd = (
+        f"python tools/bench_reconstruction.py --suite {args.suite} --field {args.field} "
+        f"--page {args.page}"
+    )
+    lines = [
+        f"# Reconstruction: the {args.suite} set",
+        "",
+        "Written by `tools/bench_reconstruction.py --page`; not edited by hand. Measure again "
+        "(add `--shard i/n` to n processes, then `--merge --page` once):",
+        "",
+        f"```bash\n{cmd}\n```",
+        "",
+        f"- Protocol: {args.views} views of {args.res} x {args.res}, every fifth a test view; "
+        f"a {args.grid}^3 grid; the model: `{args.field}`"
+        + (" (the command line's default: its start chooses)" if args.field == "auto" else "")
+        + ".",
+        "- empty: eta = 1 everywhere; start: the fit's start; ceiling: the truth in the fit's "
+        "own representation and box (its eta sampled on the grid's nodes).",
+        "- Wall: the whole `clrefract fit` (start, model choice, steps, scoring) in seconds; "
+        "other work may have shared the cores.",
+        f"- Device: {'; '.join(devices)}.",
+        "",
+        "| scene | model | empty | start | fitted | ceiling | fitted - ceiling | eta RMSE "
+        "| best step | wall (s) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        fit, ceil = r["fit"], r.get("ceiling")
+        psnr = {k: r[k]["test_psnr"] for k in ("empty", "start", "fit")}
+        top = ceil["test_psnr"] if ceil else None
+        gap = "-" if top is None else f"{psnr['fit'] - top:+.2f}"
+        lines.append(
+            f"| {r['scene']} | {r.get('model', r['field'])} | {psnr['empty']:.2f} "
+            f"| {psnr['start']:.2f} | **{psnr['fit']:.2f}** "
+            f"| {'-' if top is None else f'{top:.2f}'} "
+            f"| {gap} "
+            f"| {fit.get('eta_rmse', float('nan')):.2g} | {fit.get('best_iteration', '-')} "
+            f"| {fit.get('seconds', float('nan')):.0f} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":
