@@ -236,7 +236,8 @@ def write_fit_report(fit) -> dict:
     for key in ("stopped", "stopped_without_progress", "size_search", "final_refit", "narrowing"):
         if fit.record.get(key):
             result[key] = fit.record[key]
-    start_val = fit.record.get("start_val_loss")  # a resumed run's record has none
+    # a resumed run (and the one a model choice goes on with) reads it from start.json
+    start_val = fit.record.get("start_val_loss") or fit.out.start_loss()
     if start_val and fit.best.found:
         result["start_val_loss"] = float(start_val)
         result["best_val_over_start"] = float(fit.best.loss) / float(start_val)

@@ -122,7 +122,12 @@ def test_the_default_model_fits_a_gas_plume_whose_masks_hold_no_object(tmp_path,
     assert "do not agree on an object" in model["refused"]["interface"]
     assert 'field = "voxel"' in (run / "config.toml").read_text()
     assert "model: interface cannot start" in capsys.readouterr().err
-    assert json.loads((run / "results.json").read_text())["iterations"] == 4
+    result = json.loads((run / "results.json").read_text())
+    assert result["iterations"] == 4
+    # the start's held-out loss, from the candidate's start, though the run resumed it
+    start = json.loads((run / "start.json").read_text())
+    assert result["start_val_loss"] == start["val_loss"] > 0
+    assert result["best_val_over_start"] == result["best_val_loss"] / start["val_loss"] <= 1
 
 
 def test_masks_that_mark_under_a_hundredth_of_the_pixels_draw_no_rays():

@@ -43,6 +43,7 @@ def train(fit, until: int | None = None) -> dict:
                     start_val = fit.track_best()  # the start is a candidate too
                     if start_val is not None:
                         fit.record["start_val_loss"] = start_val
+                        fit.out.record_start_loss(start_val)
                         fit.optimizer.validated(fit, start_val)
                 row = fit.step()
                 val = fit.track_best()

@@ -220,6 +220,20 @@ class RunFolder:
     def write_json(self, name: str, value) -> None:
         self.write_text(name, json.dumps(value, indent=2))
 
+    def record_start_loss(self, loss: float) -> None:
+        """The start's held-out loss, beside its scores in start.json: a resumed run, and
+        the run a model choice goes on with, find it there."""
+        self.write_json("start.json", {**self._start_scores(), "val_loss": float(loss)})
+
+    def start_loss(self) -> float | None:
+        return self._start_scores().get("val_loss")
+
+    def _start_scores(self) -> dict:
+        try:
+            return json.loads((self.path / "start.json").read_text())
+        except (OSError, ValueError):  # runs from before start.json, or a damaged one
+            return {}
+
     def write_text(self, name: str, text: str) -> None:
         target = self.path / name
         with atomic_path(target, suffix=target.suffix) as tmp:
