@@ -246,7 +246,8 @@ def page(rows: list[dict], args) -> str:
         + (" (the command line's default: its start chooses)" if args.field == "auto" else "")
         + ".",
         "- empty: eta = 1 everywhere; start: the fit's start; ceiling: the truth in the fit's "
-        "own representation and box (its eta sampled on the grid's nodes).",
+        "own representation and box (a voxel grid's: its eta sampled on the nodes; a hash "
+        "grid's: the truth distilled into it).",
         "- Wall: the whole `clrefract fit` (start, model choice, steps, scoring) in seconds; "
         "other work may have shared the cores.",
         f"- Device: {'; '.join(devices)}.",
