@@ -223,12 +223,12 @@ def test_an_interface_field_file_round_trips_and_renders_the_same(tmp_path):
     assert np.array_equal(a, b)
 
 
-def test_a_small_interface_fit_climbs_from_its_hull_start(sphere_12x24, tmp_path):
-    """The 24 x 24 glass sphere (9 training views): the interface's hull start, then 150
-    steps of smoothed descent at the kind's own rates, judged at its last step (one held-out
-    view of 576 pixels is too few to pick a step by). The test views gain at least 0.8 dB
-    over the start (measured +1.45 to +2.38 dB over seeds 0 to 5, 27.48 -> 28.93..29.86 dB,
-    the index from 1.396 to 1.408..1.415)."""
+def test_a_small_interface_fit_climbs_from_its_hull_start(sphere_25x48, tmp_path):
+    """The 48 x 48 glass sphere (25 views): the interface's hull start, then 150 steps of
+    smoothed descent at the kind's own rates, judged at its last step. The test views gain at
+    least 3 dB over the start (measured +5.6 to +8.8 dB over seeds 0 to 8, 34.1 -> 39.8..42.9
+    dB, the index to within 0.0025 of 1.5). On 9 views of 24 x 24 the same fit gained only
+    +0.2 to +1.8 dB, and lost it again past 150 steps: too few pixels to hold the surface."""
     import io
     import json
 
@@ -241,9 +241,9 @@ def test_a_small_interface_fit_climbs_from_its_hull_start(sphere_12x24, tmp_path
     )  # fmt: skip
     assert cfg.optimizer == "descent" and cfg.descent_sigma == 4.0 and cfg.lr_phi == 0.02
     run = tmp_path / "run"
-    fit = prepare_fit(sphere_12x24, run, cfg, stream=io.StringIO())
+    fit = prepare_fit(sphere_25x48, run, cfg, stream=io.StringIO())
     result = fit.run()
-    assert result["test_psnr"] > result["start"]["test_psnr"] + 0.8, result
+    assert result["test_psnr"] > result["start"]["test_psnr"] + 3.0, result
     assert abs(fit.field.eta - 1.5) < abs(json.loads((run / "init.json").read_text())["eta"] - 1.5)
     assert (run / "surface.ply").is_file() and result["chamfer_mm"] < 1.5
 
