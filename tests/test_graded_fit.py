@@ -42,10 +42,11 @@ def test_a_hash_grid_of_a_blob_cluster_follows_a_voxel_descent_at_the_defaults(
 ):
     """From empty space a hash grid (at its defaults there: the smoothed descent) follows
     a voxel grid's descent, which the held-out views judge, and is fitted to that grid's best
-    at the end: 100 steps take the held-out loss below 0.8 of the start's and the hash
-    grid's test views up 0.7 dB (measured 0.70 and +1.00 dB, the voxel grid's own fit 0.70
-    and +1.07; 200 Adam steps on the grid's own parameters left 0.97). The run
-    resumes with its guide from the checkpoint, and a run in progress renders the guide."""
+    at the end: 150 steps take the held-out loss below 0.8 of the start's and the hash
+    grid's test views up 0.7 dB (measured 0.58 to 0.70 and +0.92 to +1.49 dB in six runs on
+    two PoCLs; at 100 steps 0.68 to 0.77 and +0.68 to +1.03, too near both bounds; 200 Adam
+    steps on the grid's own parameters left 0.97). The run resumes with its guide from the
+    checkpoint, and a run in progress renders the guide."""
     import numpy as np
 
     from clrefract.cli import main
@@ -55,7 +56,7 @@ def test_a_hash_grid_of_a_blob_cluster_follows_a_voxel_descent_at_the_defaults(
 
     run = tmp_path / "run"
     args = ["fit", str(blobs_30x32), "--out", str(run), "--field-kind", "hashgrid"]
-    args += ["--init", "empty", "--grid-res", "16", "--iterations", "100", "--val-views", "4"]
+    args += ["--init", "empty", "--grid-res", "16", "--iterations", "150", "--val-views", "4"]
     assert main(args + ["--distil-iterations", "300", "-q"]) == 0
     result = json.loads((run / "results.json").read_text())
     assert result["best_iteration"] > 0, result
@@ -67,7 +68,7 @@ def test_a_hash_grid_of_a_blob_cluster_follows_a_voxel_descent_at_the_defaults(
     guide = field_from_run(run)
     assert isinstance(guide, VoxelGrid) and guide.shape == (16, 16, 16)
     again = prepare_fit(blobs_30x32, run, cfg, resume=True)
-    assert again.it == 100
+    assert again.it == 150
     assert np.array_equal(again.optimizer.guide.params, guide.data())
     guide.set_data(again.best.params)  # the grid holds the guide's best eta
     pts = np.random.default_rng(1).uniform(-25, 25, (4000, 3))
