@@ -36,6 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..metrics import psnr_linear_batch
+from ..smoothing import gaussian_nodes
 from ..tracer import Status
 from .rays import Tag
 
@@ -51,11 +52,9 @@ def smoothed(grad_phi: np.ndarray, shape: tuple, sigma) -> np.ndarray:
 
 
 def _gaussian(grad_phi: np.ndarray, shape: tuple, sigma: float) -> np.ndarray:
-    from scipy.ndimage import gaussian_filter
-
     if sigma <= 0:
         return grad_phi
-    return gaussian_filter(grad_phi.reshape(shape), sigma, mode="nearest").ravel()
+    return gaussian_nodes(grad_phi.reshape(shape), sigma).ravel()
 
 
 def level_set_step(fit, bound) -> dict:

@@ -11,6 +11,7 @@ import numpy as np
 from ..adam import Adam
 from ..errors import ClrefractError
 from ..metrics import psnr_linear_batch
+from ..smoothing import gaussian_nodes
 from .distil import fit_to_field
 from .finishes import size_index_search
 from .kinds import KINDS, guide_config, guide_kind, make_field
@@ -157,9 +158,7 @@ def sigma_at(cfg, it: int, spacing: float) -> float:
 def smoothed_unit(grad: np.ndarray, shape: tuple, sigma_cells, free) -> np.ndarray:
     """A grid's gradient smoothed over sigma_cells (per axis), zero off the free nodes, and
     scaled to a largest magnitude of 1 (all zero where it is zero)."""
-    from scipy.ndimage import gaussian_filter
-
-    g = gaussian_filter(grad.reshape(shape), sigma_cells, mode="nearest").ravel()
+    g = gaussian_nodes(grad.reshape(shape), sigma_cells).ravel()
     if free is not None:
         g[~free[: len(g)]] = 0.0
     top = float(np.abs(g).max())
