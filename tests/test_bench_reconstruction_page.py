@@ -28,7 +28,13 @@ def _row(scene, empty, start, fit, ceiling, **extra):
 
 def test_the_page_gives_each_scene_its_figures_and_its_gap_to_the_ceiling():
     args = SimpleNamespace(
-        suite="graded", field="auto", page="docs/graded.md", views=100, res=128, grid=64
+        suite="graded",
+        field="auto",
+        page="docs/graded.md",
+        views=100,
+        res=128,
+        grid=64,
+        ceiling_grids=[],
     )
     rows = [
         _row("luneburg", 22.45, 25.12, 26.674, 29.76, device="PoCL 6.0 (cpu)"),
@@ -49,3 +55,27 @@ def test_the_page_gives_each_scene_its_figures_and_its_gap_to_the_ceiling():
     assert table[3].split(" | ")[5:7] == ["-", "-"]  # no ceiling recorded
     assert "- Device: PoCL 6.0 (cpu); not recorded." in lines
     assert len(table) == 1 + len(rows)
+
+
+def test_the_page_lists_the_truth_on_finer_grids_and_its_command_asks_for_them():
+    args = SimpleNamespace(
+        suite="paper",
+        field="interface",
+        page="p.md",
+        views=100,
+        res=128,
+        grid=64,
+        ceiling_grids=[128, 192],
+    )
+    finer = [{"grid": 128, "test_psnr": 27.871}, {"grid": 192, "test_psnr": 29.305}]
+    rows = [
+        _row("prism", 22.58, 23.05, 23.05, 25.72, ceilings=finer),
+        _row("sphere", 22.0, 30.0, 36.0, 40.0, ceilings=[]),
+    ]
+    lines = page(rows, args).splitlines()
+    assert (
+        "python tools/bench_reconstruction.py --suite paper --field interface "
+        "--ceiling-grids 128,192 --page p.md" in lines
+    )
+    assert "- prism 27.87 dB at 128^3, 29.30 dB at 192^3" in lines
+    assert not [ln for ln in lines if ln.startswith("- sphere")]

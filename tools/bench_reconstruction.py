@@ -11,14 +11,15 @@ metrics:
   scoring out);
 - ceiling: the ground truth on the same grid (the best this grid can do): its eta sampled at
   the nodes of a voxel grid, its signed distance at the nodes of a level set, or a hash
-  grid fitted to its eta and gradient the way a hash-grid start is fitted to its guide.
+  grid fitted to its eta and gradient the way a hash-grid start is fitted to its guide;
+  --ceiling-grids scores it on finer grids too (is the grid's resolution the limit?).
 
 For level sets and hash grids from the hull the index column gives the start's and the fit's
 index beside the truth's.
 
     python tools/bench_reconstruction.py [--field levelset|voxel|hashgrid]
         [--suite paper|family] [--scenes sphere,prism,drop] [--res 128] [--grid 64]
-        [--width MM] [--iterations N] [--config FIT.toml]
+        [--width MM] [--iterations N] [--config FIT.toml] [--ceiling-grids 128,192]
         [--json bench_results/reconstruction.json] [--shard i/n] [--merge] [--page PAGE.md]
 
 --iterations defaults to the quick protocol's 100 Adam steps, or the fit's own count where
@@ -53,6 +54,43 @@ def dataset(scene: str, res: int, root: Path, views: int = 100) -> Path:
     if not (out / "scene.json").is_file():
         make_dataset(name, out, MakeOptions(views=views, res=res, seed=int(seed or 0)))
     return out
+
+
+def ceiling_field(fit, truth, grid: int):
+    """The truth in the fit's own representation, on a grid^3 grid where it has one (a hash
+    grid: the truth distilled into it, as its start is); None where the truth has no surface
+    for a surface model."""
+    from clrefract.fields.voxel import VoxelGrid
+
+    cfg = fit.cfg
+    width = cfg.width
+    if cfg.field == "levelset":
+        from clrefract.fields.levelset import LevelSetField
+
+        ceiling = LevelSetField.from_sdf(lambda p: truth.sdf(p)[0], fit.box, grid, truth.eta, width)
+    elif cfg.field == "interface":  # the truth's surface on the same grid, at zero width
+        from clrefract.fields.interface import InterfaceField
+
+        ceiling = (
+            InterfaceField.from_sdf(lambda p: truth.sdf(p)[0], fit.box, grid, truth.eta, width)
+            if hasattr(truth, "sdf")
+            else None
+        )
+    elif cfg.field == "hashgrid":  # the truth fitted the way the start is
+        from dataclasses import replace
+
+        from clrefract.fit import fit_to_field, kind_of
+
+        # the truth's index, not the start's; a graded medium's, the run's own top
+        top = kind_of(cfg).eta_top(cfg, truth.eta) if hasattr(truth, "eta") else fit.eta_max
+        hc = replace(fit.field.config, eta_max=top)
+        ceiling = fit.field.__class__(hc, fit.box, seed=cfg.seed)
+        fit_to_field(
+            ceiling, truth, width, cfg.distil_iterations, cfg.seed, device=fit.distil_device()
+        )
+    else:
+        ceiling = VoxelGrid.from_field(truth, fit.box, grid, interp=cfg.interp, eta_max=fit.eta_max)
+    return ceiling
 
 
 def bench_scene(scene: str, args) -> dict:
@@ -92,39 +130,13 @@ def bench_scene(scene: str, args) -> dict:
     row["start"] = json.loads((run / "start.json").read_text())
     row["empty"] = score_field(fit, VoxelGrid(np.ones((8, 8, 8)), fit.box))
     truth = scene_truth(fit.ds)
-    if cfg.field == "levelset":
-        from clrefract.fields.levelset import LevelSetField
-
-        ceiling = LevelSetField.from_sdf(
-            lambda p: truth.sdf(p)[0], fit.box, args.grid, truth.eta, cfg.width
-        )
-    elif cfg.field == "interface":  # the truth's surface on the same grid, at zero width
-        from clrefract.fields.interface import InterfaceField
-
-        ceiling = (
-            InterfaceField.from_sdf(
-                lambda p: truth.sdf(p)[0], fit.box, args.grid, truth.eta, cfg.width
-            )
-            if hasattr(truth, "sdf")
-            else None
-        )
-    elif cfg.field == "hashgrid":  # the truth fitted the way the start is
-        from dataclasses import replace
-
-        from clrefract.fit import fit_to_field, kind_of
-
-        # the truth's index, not the start's; a graded medium's, the run's own top
-        top = kind_of(cfg).eta_top(cfg, truth.eta) if hasattr(truth, "eta") else fit.eta_max
-        hc = replace(fit.field.config, eta_max=top)
-        ceiling = fit.field.__class__(hc, fit.box, seed=cfg.seed)
-        fit_to_field(
-            ceiling, truth, cfg.width, cfg.distil_iterations, cfg.seed, device=fit.distil_device()
-        )
-    else:
-        ceiling = VoxelGrid.from_field(
-            truth, fit.box, args.grid, interp=cfg.interp, eta_max=fit.eta_max
-        )
+    ceiling = ceiling_field(fit, truth, args.grid)
     row["ceiling"] = score_field(fit, ceiling) if ceiling is not None else None
+    row["ceilings"] = [  # the truth on finer grids: how far the grid's resolution holds it
+        {"grid": g, **score_field(fit, c)}
+        for g in args.ceiling_grids
+        if cfg.field != "hashgrid" and (c := ceiling_field(fit, truth, g)) is not None
+    ]
     t0 = time.perf_counter()
     try:
         res = fit.run()
@@ -166,6 +178,14 @@ def main() -> None:
     )
     ap.add_argument("--width", type=float, help="interface width, mm (default: the fit's)")
     ap.add_argument(
+        "--ceiling-grids",
+        type=lambda v: [int(x) for x in v.split(",") if x],
+        default=[],
+        metavar="N,N",
+        help="also score the truth on these finer grids (the fit's grid-based models): what "
+        "the model would hold at each resolution",
+    )
+    ap.add_argument(
         "--iterations", type=int, help="default: 100 for Adam, the fit's own for a line search"
     )
     ap.add_argument("--batch", type=int, default=8192)
@@ -199,13 +219,15 @@ def main() -> None:
     print(head)
     print("-" * len(head))
     for r in rows:
-        for model in ("empty", "start", "fit", "ceiling"):
-            m = r[model]
+        finer = {f"ceil@{c['grid']}": c for c in r.get("ceilings", [])}
+        for model, m in [(k, r[k]) for k in ("empty", "start", "fit", "ceiling")] + [
+            *finer.items()
+        ]:
             if m is None:
                 continue
             dc = m.get("chamfer_mm")
             t = m.get("seconds")
-            n = r.get("truth_index") if model == "ceiling" else m.get("index")
+            n = r.get("truth_index") if model.startswith("ceil") else m.get("index")
             print(
                 f"{r['scene']:12} {model if model != 'fit' else r.get('model', 'fit'):9.9} "
                 f"{m['test_psnr']:6.2f} {m['test_ssim']:6.3f} "
@@ -231,7 +253,8 @@ def page(rows: list[dict], args) -> str:
     devices = sorted({r.get("device", "not recorded") for r in rows})
     cmd = (
         f"python tools/bench_reconstruction.py --suite {args.suite} --field {args.field} "
-        f"--page {args.page}"
+        + (f"--ceiling-grids {','.join(map(str, grids))} " if (grids := args.ceiling_grids) else "")
+        + f"--page {args.page}"
     )
     lines = [
         f"# Reconstruction: the {args.suite} set",
@@ -269,6 +292,14 @@ def page(rows: list[dict], args) -> str:
             f"| {fit.get('eta_rmse', float('nan')):.2g} | {fit.get('best_iteration', '-')} "
             f"| {fit.get('seconds', float('nan')):.0f} |"
         )
+    finer = [
+        f"{r['scene']} " + ", ".join(f"{c['test_psnr']:.2f} dB at {c['grid']}^3" for c in cs)
+        for r in rows
+        if (cs := r.get("ceilings"))
+    ]
+    if finer:
+        lines += ["", "The truth on finer grids (the same model, more nodes):", ""]
+        lines += [f"- {line}" for line in finer]
     return "\n".join(lines) + "\n"
 
 
