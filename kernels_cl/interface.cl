@@ -24,7 +24,7 @@
 #define SDF_INLINE inline __attribute__((always_inline))
 
 #ifndef MAX_EVENTS
-#define MAX_EVENTS 16
+#define MAX_EVENTS 32
 #endif
 #ifndef MAX_MARCH
 #define MAX_MARCH 4096
