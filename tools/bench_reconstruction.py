@@ -9,9 +9,10 @@ metrics:
 - fit: after the iterations, with the run's whole wall time (the start and the scoring of
   its test views included: what `clrefract fit` takes; the start's time column leaves its
   scoring out);
-- ceiling: the ground truth on the same grid (the best this grid can do): its eta sampled at
-  the nodes of a voxel grid, its signed distance at the nodes of a level set, or a hash
-  grid fitted to its eta and gradient the way a hash-grid start is fitted to its guide;
+- ceiling: the ground truth on the same grid: its eta sampled at the nodes of a voxel grid,
+  its signed distance at the nodes of a level set or an interface (not a bound there: a fit
+  that places its own nodes can pass it), or a hash grid fitted to its eta and gradient the
+  way a hash-grid start is fitted to its guide;
   --ceiling-grids scores it on finer grids too (is the grid's resolution the limit?).
 
 For level sets and hash grids from the hull the index column gives the start's and the fit's
@@ -269,8 +270,9 @@ def page(rows: list[dict], args) -> str:
         + (" (the command line's default: its start chooses)" if args.field == "auto" else "")
         + ".",
         "- empty: eta = 1 everywhere; start: the fit's start; ceiling: the truth in the fit's "
-        "own representation and box (a voxel grid's: its eta sampled on the nodes; a hash "
-        "grid's: the truth distilled into it).",
+        "own representation and box (a voxel grid's: its eta sampled on the nodes; a surface's: "
+        "its signed distance sampled on the nodes, which a fit that places its own nodes can "
+        "pass; a hash grid's: the truth distilled into it).",
         "- Wall: the whole `clrefract fit` (start, model choice, steps, scoring) in seconds; "
         "other work may have shared the cores.",
         f"- Device: {'; '.join(devices)}.",
