@@ -26,16 +26,13 @@ def _row(scene, empty, start, fit, ceiling, **extra):
     }
 
 
+def _args(**over):
+    base = dict(suite="graded", field="auto", page="docs/graded.md", views=100, res=128)
+    return SimpleNamespace(**{**base, "grid": 64, "ceiling_grids": [], **over})
+
+
 def test_the_page_gives_each_scene_its_figures_and_its_gap_to_the_ceiling():
-    args = SimpleNamespace(
-        suite="graded",
-        field="auto",
-        page="docs/graded.md",
-        views=100,
-        res=128,
-        grid=64,
-        ceiling_grids=[],
-    )
+    args = _args()
     rows = [
         _row("luneburg", 22.45, 25.12, 26.674, 29.76, device="PoCL 6.0 (cpu)"),
         _row("blobs:1", 22.91, 23.28, 40.12, 38.25, device="PoCL 6.0 (cpu)"),
@@ -58,15 +55,7 @@ def test_the_page_gives_each_scene_its_figures_and_its_gap_to_the_ceiling():
 
 
 def test_the_page_lists_the_truth_on_finer_grids_and_its_command_asks_for_them():
-    args = SimpleNamespace(
-        suite="paper",
-        field="interface",
-        page="p.md",
-        views=100,
-        res=128,
-        grid=64,
-        ceiling_grids=[128, 192],
-    )
+    args = _args(suite="paper", field="interface", page="p.md", ceiling_grids=[128, 192])
     finer = [{"grid": 128, "test_psnr": 27.871}, {"grid": 192, "test_psnr": 29.305}]
     rows = [
         _row("prism", 22.58, 23.05, 23.05, 25.72, ceilings=finer),
