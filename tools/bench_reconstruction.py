@@ -64,7 +64,7 @@ def ceiling_field(fit, truth, grid: int):
     from clrefract.fields.voxel import VoxelGrid
 
     cfg = fit.cfg
-    width = cfg.width
+    width = cfg.width  # the fit's own (--width's, where given)
     if cfg.field == "levelset":
         from clrefract.fields.levelset import LevelSetField
 
@@ -221,9 +221,8 @@ def main() -> None:
     print("-" * len(head))
     for r in rows:
         finer = {f"ceil@{c['grid']}": c for c in r.get("ceilings", [])}
-        for model, m in [(k, r[k]) for k in ("empty", "start", "fit", "ceiling")] + [
-            *finer.items()
-        ]:
+        models = [(k, r[k]) for k in ("empty", "start", "fit", "ceiling")] + list(finer.items())
+        for model, m in models:
             if m is None:
                 continue
             dc = m.get("chamfer_mm")

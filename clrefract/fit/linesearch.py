@@ -46,15 +46,10 @@ def smoothed(grad_phi: np.ndarray, shape: tuple, sigma) -> np.ndarray:
     with several scales, the sum of their smoothings weighted by sigma^2 (a scale of 0 adds
     the gradient itself, weighted 1)."""
     scales = sigma if isinstance(sigma, (list, tuple)) else (sigma,)
+    grid = grad_phi.reshape(shape)
     if len(scales) == 1:
-        return _gaussian(grad_phi, shape, scales[0])
-    return sum(_gaussian(grad_phi, shape, s) * (s * s if s > 0 else 1.0) for s in scales)
-
-
-def _gaussian(grad_phi: np.ndarray, shape: tuple, sigma: float) -> np.ndarray:
-    if sigma <= 0:
-        return grad_phi
-    return gaussian_nodes(grad_phi.reshape(shape), sigma).ravel()
+        return gaussian_nodes(grid, scales[0]).ravel()
+    return sum(gaussian_nodes(grid, s).ravel() * (s * s if s > 0 else 1.0) for s in scales)
 
 
 def level_set_step(fit, bound) -> dict:
