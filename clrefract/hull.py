@@ -65,6 +65,10 @@ class Hull:
         d = np.minimum(self.distance, depth - self.distance)
         return Hull(d, self.width, self.mask_fraction, self.rejected)
 
+    def graded(self, power: float) -> GradedHull:
+        """The hull filled by a profile that rises from its surface to its deepest point."""
+        return GradedHull(self.distance, self.width, self.mask_fraction, self.rejected, power)
+
     @property
     def occupancy(self) -> np.ndarray:
         return self.shell(0.0)
@@ -80,6 +84,25 @@ class Hull:
         if cells <= 0 or not inside.any():
             return inside
         return ndimage.binary_dilation(inside, iterations=cells)
+
+
+@dataclass
+class GradedHull(Hull):
+    """A graded medium's hull: `shell` is 1 - (1 - u)^power of the depth u (0 at the surface,
+    1 at the deepest point; grown or shrunk by the offset), not an occupancy. At power 2 it
+    is the parabolic profile of graded-index rods and lenses; as the power grows it tends to
+    the solid hull."""
+
+    power: float = 2.0
+
+    @property
+    def occupancy(self) -> np.ndarray:
+        return Hull(self.distance, self.width, self.mask_fraction).shell(0.0)
+
+    def shell(self, offset: float = 0.0) -> np.ndarray:
+        d = self.distance + offset
+        u = np.clip(d / max(float(d.max()), 1e-12), 0.0, 1.0)
+        return 1.0 - (1.0 - u) ** self.power
 
 
 def refraction_mask(

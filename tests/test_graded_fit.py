@@ -170,22 +170,24 @@ def test_a_calibrated_rate_halves_off_its_best_and_grows_back_at_each_new_best()
     is, or a lens drifting off its best; rises within it (the graded set's noise, up to 2.3%
     between validations) leave the rate, where halving on each froze the Luneburg lens and
     the GRIN scenes at their starts. A validation that is the run's new best grows it by
-    GROWTH, never past lr_max (nor at all where lr_max is 0, as runs before it)."""
+    GROWTH, never past lr_max (nor at all where lr_max is 0, as runs before it). While the
+    best is the start, a halving also takes the grid back to it, on the device too."""
     from types import SimpleNamespace
 
     from clrefract.fit.optimizers import GROWTH, OVERSHOOT, SmoothedDescent
 
-    written = []
+    written, rolled, uploads = [], [], []
     fit = SimpleNamespace(
         params=[0.0] * 8,
         groups=lambda: None,
         kind=SimpleNamespace(calibrates_descent=True),
-        bound=None,
+        bound=SimpleNamespace(upload=uploads.append),
+        use_best=lambda: rolled.append(fit.it),
         eta_max=1.5,
         it=0,
         cfg=SimpleNamespace(lr=4e-3, lr_max=0.0),
         out=SimpleNamespace(write_config=lambda cfg: written.append(cfg.lr)),
-        best=SimpleNamespace(loss=float("inf"), iteration=0),
+        best=SimpleNamespace(loss=0.0210, iteration=0),  # the start's held-out loss
     )
     opt = SmoothedDescent(fit)
 
@@ -196,6 +198,9 @@ def test_a_calibrated_rate_halves_off_its_best_and_grows_back_at_each_new_best()
         opt.validated(fit, loss)
 
     assert OVERSHOOT >= 0.023  # above the noise measured
+    validate(0.0210 * (1 + OVERSHOOT) * 1.01)  # off the start: halved, and back to it
+    assert fit.cfg.lr == 2e-3 and written == [2e-3] and rolled == [25] and uploads == [25]
+    fit.cfg.lr, written[:] = 4e-3, []
     for loss in (0.0200, 0.0195, 0.0199, 0.0197, 0.0201, 0.0196):  # 2.1% and 3.1% over best
         validate(loss)
     assert fit.cfg.lr == 4e-3 and written == []  # new bests, but no lr_max: no growth
@@ -203,6 +208,7 @@ def test_a_calibrated_rate_halves_off_its_best_and_grows_back_at_each_new_best()
     assert fit.cfg.lr == 2e-3 and written == [2e-3]
     validate(0.03)  # still off its best: halves again
     assert fit.cfg.lr == 1e-3 and written == [2e-3, 1e-3]
+    assert rolled == [25]  # past its start, a run goes on from where it is
     validate(0.0190)  # a new best, without lr_max
     assert fit.cfg.lr == 1e-3 and len(written) == 2
 

@@ -304,18 +304,23 @@ def test_hash_grids_skip_only_on_the_level_set_they_follow():
         load_config(None, dict(field="levelset", skip_empty=True, adjoint="discrete"))
 
 
-def test_a_hash_grid_from_the_hull_skips_by_default_where_it_can():
-    """On by default only where the level set a hash grid follows traces the rays; a user's
-    own setting wins, and settings that cannot skip are not refused for a default."""
+def test_skipping_is_on_by_default_where_most_of_the_box_is_held_at_1():
+    """On by default where the level set a hash grid follows traces the rays, and for a
+    voxel grid free near its hull alone; a user's own setting wins, and settings that
+    cannot skip are not refused for a default."""
     assert load_config(None, dict(field="hashgrid")).skip_empty is True
     assert load_config(None, dict(field="hashgrid", skip_empty=False)).skip_empty is False
+    assert load_config(None, dict(field="voxel")).skip_empty is True
+    assert load_config(None, dict(field="voxel", skip_empty=False)).skip_empty is False
     for other in (
         dict(field="hashgrid", init="empty"),
         dict(field="hashgrid", optimizer="adam"),
         dict(field="hashgrid", adjoint="discrete"),
         dict(field="levelset"),
         dict(field="levelset", optimizer="line-search"),
-        dict(field="voxel"),
+        dict(field="voxel", init="empty"),
+        dict(field="voxel", free_cells=-1),
+        dict(field="voxel", adjoint="discrete"),
     ):
         assert load_config(None, other).skip_empty is False, other
 

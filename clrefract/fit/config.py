@@ -320,8 +320,7 @@ HELP = {
     "level set: the rays whose adjoint stays tame, a smoothed shape gradient and the best of "
     "a few moves along it), or descent (interfaces and voxel grids: a smoothed, bounded step "
     "of the grid; hash grids follow a voxel grid's) (default: adam; a hash grid from the hull "
-    "line-search, from empty space descent; an interface and, from the command line, a voxel "
-    "grid descent)",
+    "line-search, from empty space descent; an interface and a voxel grid descent)",
     "descent_sigma": "descent: the grid gradient's smoothing, mm",
     "descent_sigma_final": "descent: a second smoothing of the gradient, each its own step, "
     "narrowing geometrically from descent_sigma to this, mm (at least 1.25 cells), over the "
@@ -342,8 +341,8 @@ HELP = {
     "from the hull 32768)",
     "reg": "smoothness regulariser weight",
     "sparsity": "weight of an L1 pull of voxel values towards eta = 1 (empty space)",
-    "init": "start from the visual hull of the refraction masks or eta = 1 (default: hull; "
-    "from the command line, a voxel grid empty)",
+    "init": "start from the visual hull of the refraction masks (a voxel grid's filled solid "
+    "or graded from its surface, as the loss prefers) or eta = 1 (default: hull)",
     "mask_threshold": "sRGB difference from the straight view that marks a mask pixel",
     "free_cells": "cells around the hull where eta may change (-1: everywhere)",
     "hull_tolerance": "share of the views a hull point may lie outside",
@@ -354,8 +353,8 @@ HELP = {
     "shell_starts": "level sets: also try the hull hollowed to shells 2, 4 and 6 cells deep "
     "(a bowl, a glass)",
     "mask_share": "share of each training batch drawn from the refraction masks (0: all "
-    "pixels alike; from the command line, a voxel grid 0.8); masks that mark under 1% of "
-    "the pixels (a faint gas) mark no object and are not drawn from",
+    "pixels alike; a voxel grid 0.8); masks that mark under 1% of the pixels (a faint gas) "
+    "mark no object and are not drawn from",
     "block": "compare training images by blocks of this many pixels a side at first, halving "
     "to single pixels by --block-until (0 or 1: pixels throughout)",
     "block_until": "fraction of the iterations by which the blocks reach single pixels",
@@ -373,8 +372,8 @@ HELP = {
     "of each step, replayed from checkpoints",
     "skip_empty": "rays fly straight through cells where eta cannot vary, forward and "
     "backward (level set, voxel, and a hash grid's level set from the hull; same gradient, "
-    "less time where the object is small) (default: false; a hash grid from the hull with "
-    "the line search true)",
+    "less time where the object is small) (default: false; true for a voxel grid free near its "
+    "hull, and a hash grid from the hull with the line search)",
     "occupancy_every": "with --skip-empty: rebuild the occupancy every this many iterations",
     "occupancy_res": "with --skip-empty: occupancy grid resolution over the box, per axis",
     "precision": "floating-point precision of the device kernels",

@@ -233,6 +233,13 @@ class VoxelKind(FieldKind):
     def defaults(self, items):
         for k, v in VOXEL_DEFAULTS.items():
             items.setdefault(k, v)
+        frees_near_hull = items.get("init", FitConfig.init) == "hull" and (
+            items.get("free_cells", FitConfig.free_cells) >= 0
+        )
+        if frees_near_hull and items.get("adjoint") != "discrete":
+            # rays fly past the nodes held at 1: the same gradient, and on the quick Luneburg
+            # lens 63 steps a ray instead of 143
+            items.setdefault("skip_empty", True)
         super().defaults(items)
 
     def validate(self, cfg):

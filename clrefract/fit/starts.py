@@ -1,7 +1,7 @@
 """Where a fit starts: empty space, or the visual hull of the refraction masks filled with the
 index and grown by the offset of lowest loss (for a level set, also smoothed, tightened or
-hollowed); a hash grid starts as that level set, distilled into it, or for a graded
-medium as a voxel grid's start.
+hollowed; for a voxel grid, also graded from its surface inwards); a hash grid starts as
+that level set, distilled into it, or for a graded medium as a voxel grid's start.
 """
 
 from __future__ import annotations
@@ -30,6 +30,13 @@ LINE_ROUNDS = ((0, 0.5), (0.25, 0), (0, 0.125), (0.08, 0))
 LINE_TRIES = (-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)
 VOXEL_OFFSETS = (-3.0, -2.0, -1.0, 1.0)
 VOXEL_FINE = 7
+# a voxel grid also tries the hull graded from its surface to its deepest point by these
+# powers (hull.GradedHull; the solid hull is the limit), each with a full index search:
+# a graded medium's index falls to 1 at its edge, and the solid hull (shrunk 2.4 mm)
+# started the quick Luneburg lens at 25.12 dB and the GRIN rod at 26.59, which their fits
+# took to 26.72 and 27.85; graded by 2 they started at 29.13 and 28.78 (ceilings 29.76
+# and 31.61)
+GRADED_POWERS = (1.0, 2.0, 4.0)
 # depths (cells) of the shells a level set's start tries, each at offset 0 over the coarse
 # indices; the best of them is searched as the other shapes are, from its pick
 SHELL_CELLS = (2.0, 4.0, 6.0)
@@ -47,7 +54,8 @@ def search_losses(indices: int, smoothings: list[int], shells: int = 0) -> int:
     level set, the smoothings of each shape (`smoothings`; none: a voxel grid's search) and
     `shells` shells."""
     if not smoothings:
-        return indices * (1 + len(VOXEL_OFFSETS)) + VOXEL_FINE
+        graded = (indices + VOXEL_FINE) * len(GRADED_POWERS)
+        return indices * (1 + len(VOXEL_OFFSETS)) + 2 * VOXEL_FINE + graded
     lines = len(LINE_ROUNDS) * len(LINE_TRIES)
     shell = shells * indices + 1 + lines if shells else 0
     return shell + sum(
@@ -116,7 +124,8 @@ class EmptyStart:
 
 
 class VoxelHullStart:
-    """A voxel grid with the hull filled; eta changes near the hull alone (free_cells)."""
+    """A voxel grid with the hull filled, solid or graded; eta changes near the hull alone
+    (free_cells)."""
 
     def run(self, fit, res: int) -> None:
         fit.bind(fit.make_field(res))
@@ -267,7 +276,17 @@ class HullSearch:
             else:
                 self._at = "visual"
                 loss, eta, offset = self._search_voxel(hull, idx, etas)
-                sigma, kind = 0.0, "visual"
+                sigma, kind, filled, at = 0.0, "visual", hull, self._at
+                for power in GRADED_POWERS:
+                    self._at = f"graded {power:g}"
+                    graded = hull.graded(power)
+                    trial = self._search_index(graded, idx, etas, 0.0)
+                    if trial[0] < loss:
+                        (loss, eta), offset = trial, 0.0
+                        filled, at = graded, self._at
+                # the index once more, finer: a strong lens's loss has a narrow minimum in it
+                self._at = at
+                loss, eta = self._finer_index(filled, idx, etas, offset, (loss, eta), 0.25)
         finally:
             self._losses.close()
         if self._losses.reused:
@@ -279,10 +298,12 @@ class HullSearch:
         if bar.done < bar.total:  # candidates skipped (indices at or below 1)
             bar.update(bar.total - bar.done, best=self._best_seen)
         if not loss < empty:
-            loss, eta, offset, sigma, kind = empty, 1.0, 0.0, 0.0, "visual"
+            loss, eta, offset, sigma, kind, filled = empty, 1.0, 0.0, 0.0, "visual", None
         hull = hull.smoothed(sigma)
         occ = hull.shell(offset).ravel()
-        self._set_start(hull, eta, offset)
+        if levelset or filled is None:
+            filled = hull
+        self._set_start(filled, eta, offset)
         fit.init_info = {
             "hull_fraction": float((occ > 0.5).mean()),
             "mask_fraction": hull.mask_fraction,
@@ -290,6 +311,7 @@ class HullSearch:
             "offset_mm": float(offset),
             "smoothing_mm": float(sigma),
             "hull": kind,
+            "graded_power": getattr(filled, "power", 0.0),
             "loss": float(loss),
             "loss_empty": float(empty),
             "views_left_out": rejected,
@@ -300,9 +322,15 @@ class HullSearch:
                 f"start: {len(rejected)} of {len(self.ds.train)} views left out of the hull "
                 "(their masks cut into what the others agree on)\n"
             )
+        power = fit.init_info["graded_power"]
+        fill = (
+            f"graded from its surface by power {power:g} to eta {eta:.3f}"
+            if power
+            else f"filled with eta {eta:.3f}"
+        )
         self.stream.write(
             f"start: {kind} hull {100 * fit.init_info['hull_fraction']:.2f}% of the box, "
-            f"offset {offset:+.2f} mm, smoothed {sigma:.1f} mm, filled with eta {eta:.3f} "
+            f"offset {offset:+.2f} mm, smoothed {sigma:.1f} mm, {fill} "
             f"(loss {loss:.4g}; empty {empty:.4g})\n"
         )
         fit.out.write_json("init.json", fit.init_info)
@@ -362,10 +390,19 @@ class HullSearch:
             trial = min((self._loss_of(hull, idx, e, o), float(e)) for e in etas[1:])
             if trial[0] < loss:
                 (loss, eta), offset = trial, float(o)
-        fine = eta + (etas[1] - etas[0]) * np.linspace(-0.75, 0.75, VOXEL_FINE)
+        return (*self._finer_index(hull, idx, etas, offset, (loss, eta)), offset)
+
+    def _search_index(self, hull, idx, etas, offset: float):
+        """(loss, index): the coarse indices, then finer ones about the best."""
+        best = min((self._loss_of(hull, idx, e, offset), float(e)) for e in etas[1:])
+        return self._finer_index(hull, idx, etas, offset, best)
+
+    def _finer_index(self, hull, idx, etas, offset: float, best, scale: float = 1.0):
+        """(loss, index): `best` or an index about it, VOXEL_FINE of them over 1.5 times
+        `scale` of the coarse indices' step."""
+        fine = best[1] + scale * (etas[1] - etas[0]) * np.linspace(-0.75, 0.75, VOXEL_FINE)
         cands = [(self._loss_of(hull, idx, e, offset), float(e)) for e in fine if e > 1]
-        loss, eta = min([(loss, eta), *cands])
-        return loss, eta, offset
+        return min([best, *cands])
 
     def _search_levelset(self, hull, idx, etas, start=None):
         """A joint coarse search over index and offset (a hull too big where the views cannot
