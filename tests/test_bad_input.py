@@ -490,17 +490,24 @@ def test_fit_box_overrides_the_scene_and_the_surface_is_written(ds, tmp_path, mo
     assert len(faces) > 100
     assert np.all(verts >= [-40, -38, -36]) and np.all(verts <= [36, 38, 40])
     # the mesh is marching cubes of the fitted eta halfway to the scene's index, in the box
+    # (the fit's eta is the device's float32, this the NumPy float64: a sample within
+    # rounding of the level may order the vertices otherwise, so they are compared as sets)
+    from scipy.spatial import cKDTree
+
     from clrefract.dataset import Dataset
     from clrefract.fields.base import Box
     from clrefract.report import surface_level
 
+    def same_vertices(a, b) -> bool:
+        return len(a) == len(b) and cKDTree(a).query(b)[0].max() < 1e-3
+
     field = load_field_file(run / "field.npz", Box.from_dict(meta["box"]))
     want = eta_surface(field, field.box, surface_level(Dataset(root)))
-    assert len(want[1]) == len(faces) and np.allclose(want[0], verts, atol=1e-3)
+    assert len(want[1]) == len(faces) and same_vertices(want[0], verts)
     ev = evaluate_run(run, figures=False, views=1)
     assert ev["surface"] == "surface.ply"
     got = read_mesh(run / "eval" / "surface.ply")
-    assert len(got[1]) == len(faces) and np.allclose(got[0], verts, atol=1e-3)
+    assert len(got[1]) == len(faces) and same_vertices(got[0], verts)
     # an extraction that fails is named in scoring_errors; the run keeps everything else
     import clrefract.metrics
 
