@@ -34,8 +34,8 @@ VOXEL_FINE = 7
 # powers (hull.GradedHull; the solid hull is the limit), each with a full index search:
 # a graded medium's index falls to 1 at its edge, and the solid hull (shrunk 2.4 mm)
 # started the quick Luneburg lens at 25.12 dB and the GRIN rod at 26.59, which their fits
-# took to 26.72 and 27.85; graded by 2 they started at 29.13 and 28.78 (ceilings 29.76
-# and 31.61)
+# took to 26.72 and 27.85; graded by 2 they start at 27.99 and 28.78 and end at 28.25 and
+# 29.21 (ceilings 29.76 and 31.61)
 GRADED_POWERS = (1.0, 2.0, 4.0)
 # depths (cells) of the shells a level set's start tries, each at offset 0 over the coarse
 # indices; the best of them is searched as the other shapes are, from its pick
