@@ -97,7 +97,7 @@ class GradedHull(Hull):
 
     @property
     def occupancy(self) -> np.ndarray:
-        return Hull(self.distance, self.width, self.mask_fraction).shell(0.0)
+        return super().shell(0.0)
 
     def shell(self, offset: float = 0.0) -> np.ndarray:
         d = self.distance + offset

@@ -252,6 +252,7 @@ class HullSearch:
         self._best_seen = np.inf
         digest = start_losses.fingerprint(to_toml(self.cfg), self.ds.root, fit.out.path)
         self._losses = start_losses.StartLosses(fit.out.path, digest)
+        graded = None  # the graded hull a voxel grid's start picks, if it does
         try:
             self._at = "empty"
             empty = self._loss_of(hull, idx, 1.0, 0.0)
@@ -276,17 +277,16 @@ class HullSearch:
             else:
                 self._at = "visual"
                 loss, eta, offset = self._search_voxel(hull, idx, etas)
-                sigma, kind, filled, at = 0.0, "visual", hull, self._at
+                sigma, kind, at = 0.0, "visual", self._at
                 for power in GRADED_POWERS:
                     self._at = f"graded {power:g}"
-                    graded = hull.graded(power)
-                    trial = self._search_index(graded, idx, etas, 0.0)
+                    trial = self._search_index(hull.graded(power), idx, etas, 0.0)
                     if trial[0] < loss:
                         (loss, eta), offset = trial, 0.0
-                        filled, at = graded, self._at
+                        graded, at = hull.graded(power), self._at
                 # the index once more, finer: a strong lens's loss has a narrow minimum in it
                 self._at = at
-                loss, eta = self._finer_index(filled, idx, etas, offset, (loss, eta), 0.25)
+                loss, eta = self._finer_index(graded or hull, idx, etas, offset, (loss, eta), 0.25)
         finally:
             self._losses.close()
         if self._losses.reused:
@@ -298,12 +298,10 @@ class HullSearch:
         if bar.done < bar.total:  # candidates skipped (indices at or below 1)
             bar.update(bar.total - bar.done, best=self._best_seen)
         if not loss < empty:
-            loss, eta, offset, sigma, kind, filled = empty, 1.0, 0.0, 0.0, "visual", None
+            loss, eta, offset, sigma, kind, graded = empty, 1.0, 0.0, 0.0, "visual", None
         hull = hull.smoothed(sigma)
         occ = hull.shell(offset).ravel()
-        if levelset or filled is None:
-            filled = hull
-        self._set_start(filled, eta, offset)
+        self._set_start(graded or hull, eta, offset)
         fit.init_info = {
             "hull_fraction": float((occ > 0.5).mean()),
             "mask_fraction": hull.mask_fraction,
@@ -311,7 +309,7 @@ class HullSearch:
             "offset_mm": float(offset),
             "smoothing_mm": float(sigma),
             "hull": kind,
-            "graded_power": getattr(filled, "power", 0.0),
+            "graded_power": graded.power if graded else 0.0,
             "loss": float(loss),
             "loss_empty": float(empty),
             "views_left_out": rejected,
