@@ -170,13 +170,15 @@ def test_a_calibrated_rate_halves_off_its_best_and_grows_back_at_each_new_best()
     held-out loss is more than OVERSHOOT above the run's best, as an overshot faint medium's
     is, or a lens drifting off its best; rises within it (the graded set's noise, up to 2.3%
     between validations) leave the rate, where halving on each froze the Luneburg lens and
-    the GRIN scenes at their starts. A validation that is the run's new best grows it by
-    GROWTH, never past lr_max (nor at all where lr_max is 0, as runs before it). While the
-    best is the start, a halving also takes the grid back to it, on the device too."""
+    the GRIN scenes at their starts. More than PLATEAU validations without a better loss
+    halve it too. A halving takes the grid back to its best (on the device too) where that
+    best is the start or older than the last validation. A validation that is the run's new
+    best grows the rate by GROWTH, never past lr_max (nor at all where lr_max is 0)."""
     from types import SimpleNamespace
 
-    from clrefract.fit.optimizers import GROWTH, OVERSHOOT, SmoothedDescent
+    from clrefract.fit.optimizers import GROWTH, OVERSHOOT, PLATEAU, SmoothedDescent
 
+    every = 25
     written, rolled, uploads = [], [], []
     fit = SimpleNamespace(
         params=[0.0] * 8,
@@ -186,14 +188,14 @@ def test_a_calibrated_rate_halves_off_its_best_and_grows_back_at_each_new_best()
         use_best=lambda: rolled.append(fit.it),
         eta_max=1.5,
         it=0,
-        cfg=SimpleNamespace(lr=4e-3, lr_max=0.0),
+        cfg=SimpleNamespace(lr=4e-3, lr_max=0.0, validate_every=every),
         out=SimpleNamespace(write_config=lambda cfg: written.append(cfg.lr)),
         best=SimpleNamespace(loss=0.0210, iteration=0),  # the start's held-out loss
     )
     opt = SmoothedDescent(fit)
 
     def validate(loss):  # as the loop does: the best first, then the optimiser
-        fit.it += 25
+        fit.it += every
         if loss < fit.best.loss:
             fit.best.loss, fit.best.iteration = loss, fit.it
         opt.validated(fit, loss)
@@ -202,24 +204,29 @@ def test_a_calibrated_rate_halves_off_its_best_and_grows_back_at_each_new_best()
     validate(0.0210 * (1 + OVERSHOOT) * 1.01)  # off the start: halved, and back to it
     assert fit.cfg.lr == 2e-3 and written == [2e-3] and rolled == [25] and uploads == [25]
     fit.cfg.lr, written[:] = 4e-3, []
-    for loss in (0.0200, 0.0195, 0.0199, 0.0197, 0.0201, 0.0196):  # 2.1% and 3.1% over best
+    for loss in (0.0200, 0.0195):  # new bests, but no lr_max: no growth
         validate(loss)
-    assert fit.cfg.lr == 4e-3 and written == []  # new bests, but no lr_max: no growth
-    validate(0.0195 * (1 + OVERSHOOT) * 1.01)  # a drift past OVERSHOOT
-    assert fit.cfg.lr == 2e-3 and written == [2e-3]
-    validate(0.03)  # still off its best: halves again
-    assert fit.cfg.lr == 1e-3 and written == [2e-3, 1e-3]
-    assert rolled == [25]  # past its start, a run goes on from where it is
+    for _ in range(PLATEAU):  # within 5% of the best, PLATEAU times: unchanged
+        validate(0.0199)
+    assert fit.cfg.lr == 4e-3 and written == [] and rolled == [25]
+    validate(0.0197)  # one more without a better loss: halved, back to the best
+    assert fit.cfg.lr == 2e-3 and written == [2e-3] and rolled == [25, fit.it]
+    assert uploads == rolled
+    validate(0.0195 * (1 + OVERSHOOT) * 1.01)  # a drift past OVERSHOOT, from an old best
+    assert fit.cfg.lr == 1e-3 and written == [2e-3, 1e-3] and rolled[-1] == fit.it
+    n_rolled = len(rolled)
     validate(0.0190)  # a new best, without lr_max
     assert fit.cfg.lr == 1e-3 and len(written) == 2
+    validate(0.03)  # off a best one validation old: halved, and goes on from where it is
+    assert fit.cfg.lr == 5e-4 and written[-1] == 5e-4 and len(rolled) == n_rolled
 
     fit.cfg.lr_max = 2.5e-3  # as the calibration sets it
     validate(0.0191)  # within the noise, not a new best: unchanged
-    assert fit.cfg.lr == 1e-3 and len(written) == 2
+    assert fit.cfg.lr == 5e-4 and len(written) == 3
     validate(0.0185)
-    assert fit.cfg.lr == pytest.approx(1e-3 * GROWTH, rel=1e-12)
+    assert fit.cfg.lr == pytest.approx(5e-4 * GROWTH, rel=1e-12)
     assert written[-1] == fit.cfg.lr
-    for loss in (0.0180, 0.0175, 0.0170):
+    for loss in (0.0180, 0.0175, 0.0170, 0.0168):
         validate(loss)
     assert fit.cfg.lr == 2.5e-3 and written[-1] == 2.5e-3  # at its ceiling
     n = len(written)
