@@ -242,18 +242,20 @@ class SmoothedDescent(AdamSteps):
     def validated(self, fit, loss: float) -> None:
         """A calibrated rate halves (in config.toml) at each validation whose held-out loss is
         more than OVERSHOOT above the run's best (tracked before this is called), or that
-        follows more than PLATEAU without a better one. Where that best is the start, or
-        older than the last validation, the grid goes back to it: a first step's best
-        length, repeated, overshot a faint blob's whole index (1.003: the test views lost
-        2.2 dB in 60 steps), and from a graded start near the truth 50 steps of 5e-3 took
-        the Luneburg lens too far to come back at any rate. A validation that is the run's
-        new best grows it by GROWTH, up to lr_max: one batch's calibration is no measure of
-        the whole run."""
+        follows more than PLATEAU without a better one once the run has beaten its start.
+        Where that best is the start, or older than the last validation, the grid goes back
+        to it: a first step's best length, repeated, overshot a faint blob's whole index
+        (1.003: the test views lost 2.2 dB in 60 steps), and from a graded start near the
+        truth 50 steps of 5e-3 took the Luneburg lens too far to come back at any rate. A
+        validation that is the run's new best grows it by GROWTH, up to lr_max: one batch's
+        calibration is no measure of the whole run."""
         cfg = fit.cfg
         if not self.nodes(fit)[1].calibrates_descent:
             return
         stale = fit.it - fit.best.iteration
-        if loss > fit.best.loss * (1 + OVERSHOOT) or stale > PLATEAU * cfg.validate_every:
+        # a plateau at the start is a descent still finding its way: halving there froze it
+        plateau = fit.best.iteration > 0 and stale > PLATEAU * cfg.validate_every
+        if loss > fit.best.loss * (1 + OVERSHOOT) or plateau:
             cfg.lr /= 2
             # steps too long for a start near the truth, or for the basin the run reached
             # (a hash grid's guide keeps its own best apart)
