@@ -173,8 +173,8 @@ def test_a_calibrated_rate_halves_off_its_best_and_grows_back_at_each_new_best()
     the GRIN scenes at their starts. More than PLATEAU validations without a better loss
     halve it too, once the run has beaten its start. A halving takes the grid back to its
     best (on the device too) where that best is the start or older than the last
-    validation. A validation that is the run's new
-    best grows the rate by GROWTH, never past lr_max (nor at all where lr_max is 0)."""
+    validation. A validation that is the run's new best grows the rate by GROWTH, never past
+    lr_max (nor at all where lr_max is 0)."""
     from types import SimpleNamespace
 
     from clrefract.fit.optimizers import GROWTH, OVERSHOOT, PLATEAU, SmoothedDescent

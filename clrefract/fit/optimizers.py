@@ -128,10 +128,11 @@ CALIBRATION_STEPS = 6
 # rod's and lens's below 1e-6 within 600 steps, and they kept their starts; halving only on
 # rises of 5% between validations let the lens drift 10% above its best at 5e-3.
 OVERSHOOT = 0.05
-# More validations than this without a better held-out loss halve the rate too (and, with
-# an overshoot, a best older than the last validation takes the grid back to it). Quick
-# GRIN rod, test PSNR: 29.21 with neither (its rate stayed at 5e-3 over the last 300 steps
-# within 3% of its best), 30.25 going back alone, 30.84 with both (ceiling 31.61)
+# More validations than this without a better held-out loss halve the rate too, once a run
+# has beaten its start; any halving goes back to a best older than the last validation.
+# Quick GRIN rod, test PSNR: 29.21 with neither (its rate stayed at 5e-3 over the last 300
+# steps within 3% of its best), 30.25 going back alone, 30.84 and 29.95 with both (ceiling
+# 31.61; docs/design/descent-rate.md)
 PLATEAU = 3
 
 
