@@ -279,11 +279,11 @@ class HullSearch:
                 loss, eta, offset = self._search_voxel(hull, idx, etas)
                 sigma, kind, at = 0.0, "visual", self._at
                 for power in GRADED_POWERS:
-                    self._at = f"graded {power:g}"
-                    trial = self._search_index(hull.graded(power), idx, etas, 0.0)
+                    self._at, profile = f"graded {power:g}", hull.graded(power)
+                    trial = self._search_index(profile, idx, etas, 0.0)
                     if trial[0] < loss:
                         (loss, eta), offset = trial, 0.0
-                        graded, at = hull.graded(power), self._at
+                        graded, at = profile, self._at
                 # the index once more, finer: a strong lens's loss has a narrow minimum in it
                 self._at = at
                 loss, eta = self._finer_index(graded or hull, idx, etas, offset, (loss, eta), 0.25)
