@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 
@@ -48,7 +49,6 @@ def test_a_hash_grid_of_a_blob_cluster_follows_a_voxel_descent_at_the_defaults(
     +0.68 to +1.03, too near both bounds; 200 Adam steps on the grid's own parameters left
     0.97). The run resumes with its guide from the checkpoint, and a run in progress
     renders the guide."""
-    import numpy as np
 
     from clrefract.cli import main
     from clrefract.fields.hashgrid import HashGridField
@@ -137,7 +137,6 @@ def test_masks_that_mark_under_a_hundredth_of_the_pixels_draw_no_rays():
     under MIN_MASK_COVERAGE of the training pixels no ray is marked, so batches, validation
     and the fixed mask batches draw from all pixels alike; at or above it, the masks' rays
     (grown by 2 pixels) make mask_share of a batch."""
-    import numpy as np
     from scipy.ndimage import binary_dilation
 
     from clrefract.fit.config import FitConfig
@@ -237,6 +236,104 @@ def test_a_calibrated_rate_halves_off_its_best_and_grows_back_at_each_new_best()
     n = len(written)
     validate(0.0165)
     assert fit.cfg.lr == 2.5e-3 and len(written) == n  # nothing to write
+
+
+def test_a_validation_keeps_the_mean_of_the_steps_where_the_held_out_views_prefer_it():
+    """At a validation, a calibrated descent also scores the mean of its iterates since the
+    last one: steps scattered about the minimum by noise leave their mean nearer it, and the
+    descent goes on from the mean (host and device); steps still closing in leave the last
+    nearer, and it stays. One iterate has no mean, and a kind that does not calibrate (an
+    interface) is scored as it is."""
+    from types import SimpleNamespace
+
+    from clrefract.fit.optimizers import SmoothedDescent
+
+    target = np.array([1.0, 2.0, 3.0])
+    uploads = []
+    bound = SimpleNamespace(params=np.zeros(3), field=SimpleNamespace(set_data=lambda p: None))
+    bound.tracer, bound.upload = None, lambda it: uploads.append(bound.params.copy())
+    loss_now = lambda tracer: float(((bound.params - target) ** 2).sum())  # noqa: E731
+    kind = SimpleNamespace(calibrates_descent=True)
+    fit = SimpleNamespace(
+        params=[0.0] * 3,
+        groups=lambda: None,
+        kind=kind,
+        bound=bound,
+        objective=SimpleNamespace(held_out_loss=loss_now),
+        eta_max=1.5,
+        it=25,
+    )
+    opt = SmoothedDescent(fit)
+
+    def walk(iterates):
+        for p in iterates:
+            bound.params[:] = p
+            opt.mean.add(bound.params)
+
+    noise = np.random.default_rng(0).normal(0.0, 0.1, (8, 3))
+    walk(target + noise)  # about the minimum
+    last = loss_now(None)
+    got = opt.validation_loss(fit)
+    mean = target + noise.mean(axis=0)
+    assert got == pytest.approx(float(((mean - target) ** 2).sum()), rel=1e-12) and got < last
+    assert np.allclose(bound.params, mean) and np.allclose(uploads[-1], mean)
+
+    uploads.clear()
+    closing = [target + 1.0 / k for k in range(1, 9)]  # the last is the nearest
+    walk(closing)
+    assert opt.validation_loss(fit) == pytest.approx(3 / 64, rel=1e-12)
+    assert np.allclose(bound.params, closing[-1]) and np.allclose(uploads[-1], closing[-1])
+
+    uploads.clear()
+    walk(target + noise[:1])  # one step since the last validation: nothing to average
+    assert opt.validation_loss(fit) == loss_now(None) and uploads == []
+    kind.calibrates_descent = False
+    walk(target + noise)
+    assert opt.validation_loss(fit) == loss_now(None) and uploads == []
+    assert np.allclose(bound.params, target + noise[-1])
+
+
+@pytest.mark.parametrize("refit_loss", [0.5, 2.0])
+def test_a_hash_grid_keeps_its_refit_to_the_guide_only_where_the_held_out_views_prefer_it(
+    monkeypatch, refit_loss
+):
+    """At the end of a graded hash-grid fit, the grid is fitted to its guide's best step. A
+    refit the held-out views score worse than the start's grid (the distillation lost what
+    the guide gained) is undone, on the host and the device, and the run says so."""
+    import io
+    from types import SimpleNamespace
+
+    from clrefract.fit import optimizers
+
+    start, refitted = np.array([1.0, 1.1]), np.array([1.2, 1.3])
+    losses = {start.tobytes(): 1.0, refitted.tobytes(): refit_loss}
+    uploaded = []
+
+    def set_params(params, it):
+        bound.params[:] = params
+        uploaded.append(params.copy())
+
+    bound = SimpleNamespace(params=start.copy(), tracer=None, set_params=set_params)
+    guide = SimpleNamespace(params=np.zeros(4), field=SimpleNamespace(set_data=lambda p: None))
+    fit = SimpleNamespace(
+        params=[0.0] * 2,
+        groups=lambda: None,
+        cfg=SimpleNamespace(optimizer="descent", width=1.0, distil_iterations=10, seed=0),
+        best=SimpleNamespace(iteration=50, params=np.ones(4)),
+        bound=bound,
+        field=SimpleNamespace(data=lambda: refitted.copy()),
+        objective=SimpleNamespace(held_out_loss=lambda t: losses[bound.params.tobytes()]),
+        stream=io.StringIO(),
+        distil_device=lambda: None,
+        it=100,
+    )
+    monkeypatch.setattr(optimizers, "fit_to_field", lambda *a, **k: 0.01)
+    done = optimizers.GuidedDescent(fit, guide, 1.5).finish(fit)["final_refit"]
+    kept = refit_loss < 1.0
+    assert done["kept"] is kept and done["held_out_loss"] == {"start": 1.0, "refit": refit_loss}
+    assert np.array_equal(bound.params, refitted if kept else start)
+    assert np.array_equal(uploaded[-1], bound.params)
+    assert ("keeping the start's" in fit.stream.getvalue()) is not kept
 
 
 def test_the_descent_smoothing_narrows_geometrically_over_the_first_half_of_the_steps():

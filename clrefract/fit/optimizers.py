@@ -144,6 +144,27 @@ PLATEAU = 3
 GROWTH = 1.5
 
 
+class IterateMean:
+    """The mean of the iterates a descent passed through since it was last taken: where the
+    steps are as long as the noise in their directions, the mean lies nearer the minimum
+    than any one of them (Polyak-Ruppert averaging)."""
+
+    def __init__(self):
+        self.total, self.count = None, 0
+
+    def add(self, params: np.ndarray) -> None:
+        if self.total is None or self.total.shape != params.shape:  # a new grid starts anew
+            self.total, self.count = np.zeros_like(params, np.float64), 0
+        self.total += params
+        self.count += 1
+
+    def take(self) -> np.ndarray | None:
+        """The mean (None for fewer than two iterates), and a fresh start."""
+        mean = self.total / self.count if self.count >= 2 else None
+        self.total, self.count = None, 0
+        return mean
+
+
 # the descent's narrowing smoothing stops at this many cells: at 16^3 over 100 mm, narrowing
 # alone to 2 mm took a blob cluster from empty space to 0.92 of its held-out loss in 100
 # steps, 8 mm throughout to 0.70 (a node's gradient there is its rays' alone)
@@ -182,6 +203,10 @@ class SmoothedDescent(AdamSteps):
     views down). Scalars after the grid (an interface's index) move their rate along their
     gradient's sign. Both decay by a cosine to lr_final."""
 
+    def reset(self, fit) -> None:
+        super().reset(fit)
+        self.mean = IterateMean()
+
     def nodes(self, fit) -> tuple:
         """The bound field whose nodes descend, its kind and its top index: the fit's own."""
         return fit.bound, fit.kind, fit.eta_max
@@ -190,7 +215,22 @@ class SmoothedDescent(AdamSteps):
         return self.nodes(fit)[0]
 
     def validation_loss(self, fit) -> float:
-        return fit.objective.held_out_loss(self.nodes(fit)[0].tracer)
+        """The held-out loss of the grid, or of the mean of its steps since the last
+        validation where that is lower (a calibrated descent's): the descent goes on from the
+        one kept. Quick GRIN rod, test PSNR: 31.02 with the mean (held-out 0.57 of the
+        start's), 29.95 and 30.84 without (0.74 and 0.67); ceiling 31.61."""
+        bound, kind, _ = self.nodes(fit)
+        loss = fit.objective.held_out_loss(bound.tracer)
+        mean = self.mean.take()
+        if mean is None or not kind.calibrates_descent:
+            return loss
+        here = bound.params.copy()
+        _load(bound, mean, fit.it)
+        averaged = fit.objective.held_out_loss(bound.tracer)
+        if averaged < loss:
+            return averaged
+        _load(bound, here, fit.it)
+        return loss
 
     def step(self, fit) -> dict:
         self._regrid(fit)
@@ -223,6 +263,7 @@ class SmoothedDescent(AdamSteps):
         kind.project(cfg, bound.params, eta_max, bound.free)
         field.set_data(bound.params)
         bound.upload(fit.it, stepped=True)
+        self.mean.add(bound.params)
         dt = time.perf_counter() - t0
         fit.it += 1
         exited = r.status == 0
@@ -298,9 +339,7 @@ class SmoothedDescent(AdamSteps):
             bound.field.set_data(bound.params)
             bound.upload(fit.it)
             fall.append(base - fit.objective.loss(bound.tracer, idx))
-        bound.params[:] = start
-        bound.field.set_data(bound.params)
-        bound.upload(fit.it)
+        _load(bound, start, fit.it)
         k = min(int(np.argmax(fall)) + 1, CALIBRATION_STEPS) if fall[0] < 0 < max(fall) else 0
         fit.cfg.lr, fit.cfg.lr_max = grid_rate / 4**k, grid_rate
         fit.out.write_config(fit.cfg)
@@ -456,8 +495,10 @@ class GuidedDescent(FollowsGuide, SmoothedDescent):
 
     def finish(self, fit) -> dict:
         """The hash grid fitted afresh to the guide's best-validated step (the last without
-        validation; none where that is the start, which it holds); the guide left at its last
-        step, where --resume goes on."""
+        validation; none where that is the start, which it holds), kept where the held-out
+        views prefer it to the start's grid: a fit holds what the guide gained only where
+        the grid can (the README's Luneburg lens on n_max 32 lost 0.15 dB in the refit); the
+        guide left at its last step, where --resume goes on."""
         best = fit.best
         it, params = best.iteration, best.params
         if params is None:
@@ -465,6 +506,8 @@ class GuidedDescent(FollowsGuide, SmoothedDescent):
         if it == 0:
             return {}  # the grid holds the start's fit already
         t0 = time.perf_counter()
+        start = fit.bound.params.copy()
+        before = fit.objective.held_out_loss(fit.bound.tracer)
         self.guide.field.set_data(params)
         rms = fit_to_field(
             fit.field,
@@ -476,10 +519,20 @@ class GuidedDescent(FollowsGuide, SmoothedDescent):
         )
         fit.bound.set_params(fit.field.data(), fit.it)
         self.guide.field.set_data(self.guide.params)
+        after = fit.objective.held_out_loss(fit.bound.tracer)
+        kept = after <= before
+        if not kept:
+            fit.bound.set_params(start, fit.it)
+            fit.stream.write(
+                f"fit: the grid fitted to step {it} scores worse on the held-out views than "
+                f"the start's ({after:.4g} against {before:.4g}): keeping the start's\n"
+            )
         return {
             "final_refit": {
                 "iteration": it,
                 "distilled_rms": rms,
+                "held_out_loss": {"start": before, "refit": after},
+                "kept": kept,
                 "seconds": time.perf_counter() - t0,
             }
         }
@@ -503,6 +556,13 @@ def resumed_guide(fit, ckpt) -> tuple:
     guide = fit.guide_bound(field, cfg)
     guide.set_params(params, fit.it)  # and the cells it skips, as the run it continues did
     return guide, eta_max
+
+
+def _load(bound, params: np.ndarray, it: int) -> None:
+    """Set a bound field's parameters, on the host and the device."""
+    bound.params[:] = params
+    bound.field.set_data(bound.params)
+    bound.upload(it)
 
 
 def _timed(row: dict, t0: float) -> dict:
