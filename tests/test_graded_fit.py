@@ -250,8 +250,12 @@ def test_a_validation_keeps_the_mean_of_the_steps_where_the_held_out_views_prefe
 
     target = np.array([1.0, 2.0, 3.0])
     uploads = []
-    bound = SimpleNamespace(params=np.zeros(3), field=SimpleNamespace(set_data=lambda p: None))
-    bound.tracer, bound.upload = None, lambda it: uploads.append(bound.params.copy())
+
+    def set_params(params, it):  # host and device
+        bound.params[:] = params
+        uploads.append(bound.params.copy())
+
+    bound = SimpleNamespace(params=np.zeros(3), tracer=None, set_params=set_params)
     loss_now = lambda tracer: float(((bound.params - target) ** 2).sum())  # noqa: E731
     kind = SimpleNamespace(calibrates_descent=True)
     fit = SimpleNamespace(
