@@ -217,9 +217,8 @@ class SmoothedDescent(AdamSteps):
     def validation_loss(self, fit) -> float:
         """The held-out loss of the grid, or of the mean of its steps since the last
         validation where that is lower (a calibrated descent's): the descent goes on from the
-        one kept. Quick graded set, test PSNR with / without: Luneburg lens 29.45 / 28.79
-        (ceiling 29.76), GRIN rod 30.36 / 29.95 (31.61), blob clusters 1.1 to 1.5 dB higher
-        (docs/design/descent-rate.md)."""
+        one kept. Quick graded set: the blob clusters 0.6 to 1.5 dB higher in two runs, the
+        lenses and the plume within run-to-run spread (docs/design/descent-rate.md)."""
         bound, kind, _ = self.nodes(fit)
         loss = fit.objective.held_out_loss(bound.tracer)
         mean = self.mean.take()
