@@ -263,7 +263,8 @@ class SmoothedDescent(AdamSteps):
         kind.project(cfg, bound.params, eta_max, bound.free)
         field.set_data(bound.params)
         bound.upload(fit.it, stepped=True)
-        self.mean.add(bound.params)
+        if kind.calibrates_descent:  # interfaces keep no mean: no work on their steps
+            self.mean.add(bound.params)
         dt = time.perf_counter() - t0
         fit.it += 1
         exited = r.status == 0
