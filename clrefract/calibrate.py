@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares, minimize
 
-from .cameras import Camera, load_transforms
+from .cameras import Camera
 from .dataset import SCENE_FILE, Dataset
 from .envmap import EnvMap, pixel_directions, rotation_matrix
 from .errors import ClrefractError
@@ -37,6 +37,12 @@ COARSE_PIXELS = 1_500  # samples over all views: grid and blurred refinement
 FINE_PIXELS = 16_000  # samples over all views: the sharp refinement
 N_STARTS = 3  # grid minima refined
 POOR_MATCH = 0.3  # RMS log residual above which the match is reported as poor
+# a dataset as stated, above which it needs registering: clrefract's own clean datasets sit
+# at 0.006 and 1e-4 (a pixel's footprint), a rendered capture with sensor noise and JPEG at
+# 0.08 once registered; its panorama turned by 5 degrees and its exposures jittered by
+# 0.3 EV read 0.14 and 0.39
+MISMATCH_RESIDUAL = 0.05
+MISMATCH_GAIN_LOG = 0.05  # 5% in any channel of any view
 # where the box leaves few rays that miss it (the default box, the region the cameras look
 # at, often fills the views), every pixel is used and the object's are trimmed after a first,
 # robust registration: refracted pixels see the panorama elsewhere, far beyond a third of a
@@ -75,16 +81,14 @@ def background_views(ds: Dataset, box: Box | None = None, whole: bool = False) -
     hi = np.asarray(box.hi, float) + box.margin
     grown = Box(tuple(lo), tuple(hi), box.margin)
     views = []
-    for name in dict.fromkeys([ds.scene.train, ds.scene.test]):
-        source = ds.root / name
-        for k, cam in enumerate(load_transforms(source)):
-            o, d = cam.rays()
-            near, far = grown.ray_span(o, d)
-            miss = (far <= near) | (far <= 0) | whole
-            img, weight = ds.frame(cam)
-            rgb = img.reshape(-1, 3).astype(np.float64)
-            keep = miss & (weight.ravel() > 0) & (rgb > 0).all(axis=1)
-            views.append(View(source, k, cam, d[keep], rgb[keep]))
+    for source, k, cam in ds.frames():
+        o, d = cam.rays()
+        near, far = grown.ray_span(o, d)
+        miss = (far <= near) | (far <= 0) | whole
+        img, weight = ds.frame(cam)
+        rgb = img.reshape(-1, 3).astype(np.float64)
+        keep = miss & (weight.ravel() > 0) & (rgb > 0).all(axis=1)
+        views.append(View(source, k, cam, d[keep], rgb[keep]))
     return views
 
 
@@ -342,33 +346,171 @@ def write_json(path: Path, d: dict) -> None:
         tmp.write_text(json.dumps(d, indent=2) + "\n", encoding="utf-8")
 
 
-def calibrate(
-    root,
+@dataclass
+class Corrections:
+    """What a registration changes in a dataset: the panorama's rotation (None: kept), and per
+    frame, keyed by (transforms file name, place in its frames), the exposure_scale and
+    white_balance found and the turn (3 x 3, world frame) that puts its camera onto the
+    panorama. Applied in memory (`apply`), kept in a run folder (`to_dict`), or written into
+    the dataset's files (`write`)."""
+
+    envmap_rotation: list | None = None
+    gains: dict = field(default_factory=dict)  # (file, index) -> (exposure, [r, g, b])
+    turns: dict = field(default_factory=dict)  # (file, index) -> 3 x 3 array
+
+    def apply(self, ds: Dataset) -> None:
+        """Change `ds`'s scene and cameras in memory, as written files would read."""
+        if self.envmap_rotation is not None:
+            ds.scene.envmap_rotation = list(self.envmap_rotation)
+        for source, k, cam in ds.frames():
+            key = (source.name, k)
+            if key in self.turns:
+                cam.c2w[:3, :3] = np.asarray(self.turns[key]) @ cam.c2w[:3, :3]
+            if key in self.gains:
+                cam.exposure, wb = self.gains[key]
+                cam.white_balance = tuple(float(x) for x in wb)
+
+    def write(self, root: Path) -> list[str]:
+        """Store them in a dataset folder's scene.json and transforms files, keeping every
+        other key; the files written."""
+        root = Path(root)
+        edits: dict[str, dict] = {}
+        for name, _ in [*self.turns, *self.gains]:
+            edits.setdefault(name, read_json(root / name))
+        for (name, k), t in self.turns.items():
+            fr = edits[name]["frames"][k]
+            c2w = np.asarray(fr["transform_matrix"], float)
+            c2w[:3, :3] = np.asarray(t) @ c2w[:3, :3]
+            fr["transform_matrix"] = c2w.tolist()
+        for (name, k), (e, wb) in self.gains.items():
+            fr = edits[name]["frames"][k]
+            fr["exposure_scale"] = round(e, 6)
+            fr["white_balance"] = [round(x, 6) for x in wb]
+        written = []
+        for name, d in edits.items():
+            write_json(root / name, d)
+            written.append(str(root / name))
+        if self.envmap_rotation is not None:
+            scene_path = root / SCENE_FILE
+            scene = read_json(scene_path) if scene_path.is_file() else {}
+            scene["envmap_rotation"] = list(self.envmap_rotation)
+            write_json(scene_path, scene)
+            written.append(str(scene_path))
+        return written
+
+    def to_dict(self) -> dict:
+        frames = {}
+        for (name, k), t in self.turns.items():
+            frames.setdefault((name, k), {})["turn"] = np.round(t, 12).tolist()
+        for (name, k), (e, wb) in self.gains.items():
+            frames.setdefault((name, k), {}).update(
+                exposure_scale=round(e, 6), white_balance=[round(x, 6) for x in wb]
+            )
+        return {
+            "envmap_rotation": self.envmap_rotation,
+            "frames": [{"file": n, "index": k, **v} for (n, k), v in sorted(frames.items())],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, where: Path) -> Corrections:
+        try:
+            out = cls(d.get("envmap_rotation"))
+            for fr in d["frames"]:
+                key = (str(fr["file"]), int(fr["index"]))
+                if "turn" in fr:
+                    out.turns[key] = np.asarray(fr["turn"], float).reshape(3, 3)
+                if "exposure_scale" in fr:
+                    wb = [float(x) for x in fr["white_balance"]]
+                    out.gains[key] = (float(fr["exposure_scale"]), wb)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ClrefractError(f"{where}: not a registration ({exc!r})") from None
+        return out
+
+
+@dataclass
+class Mismatch:
+    """How far a dataset's background pixels are from its panorama as the dataset states it,
+    without searching: the RMS log residual with each view's RGB gain taken out (a turned
+    panorama or turned cameras), and the largest gain a view needs (exposure and white
+    balance), as |log|."""
+
+    residual: float
+    gain_log: float
+
+    def needs_registration(self) -> bool:
+        return self.residual > MISMATCH_RESIDUAL or self.gain_log > MISMATCH_GAIN_LOG
+
+    def words(self) -> str:
+        return (
+            f"RMS log residual {self.residual:.3f}, exposure or white balance off by up to "
+            f"{100 * (math.exp(self.gain_log) - 1):.0f}%"
+        )
+
+
+def _enough(views: list[View]) -> list[View]:
+    return [v for v in views if len(v.dirs) >= MIN_VIEW_PIXELS]
+
+
+def _background(ds: Dataset, given: bool) -> tuple[list[View], bool]:
+    """Every frame's background pixels: those past the box, or every pixel (then True: the
+    object's are to be trimmed) where the box leaves too few and was not the user's."""
+    views = background_views(ds, ds.box)
+    total = sum(v.camera.width * v.camera.height for v in views)
+    if sum(len(v.dirs) for v in _enough(views)) < MIN_SHARE * total and not given:
+        return background_views(ds, ds.box, whole=True), True
+    return views, False
+
+
+def _seen(ds: Dataset, views: list[View]) -> list[View]:
+    seen = _enough(views)
+    if not seen:
+        raise no_background_error(ds, ds.box)
+    return seen
+
+
+def mismatch(ds: Dataset, given: bool = False, seed: int = 0) -> Mismatch:
+    """The background against the panorama at the scene's rotation and the frames' gains
+    (`given`: as `register`'s)."""
+    env = EnvMap.from_file(ds.root / ds.scene.envmap)
+    old = ds.scene.envmap_rotation
+    angles = np.zeros(3) if old is None else angles_of(old)
+    views, whole = _background(ds, given)
+    seen = _seen(ds, inliers(env, views, angles) if whole else views)
+    gains = [g for g in estimate_gains(env, angles, seen) if g is not None]
+    worst = float(np.abs(np.log(gains)).max()) if gains else 0.0
+    return Mismatch(log_residual(env, seen, angles, seed), worst)
+
+
+def describe_background(root: Path, box: Box | None, notes: list[str]) -> None:
+    """Warn where the background pixels differ from the panorama as the dataset states it
+    (its rotation, the frames' exposures), with what registers it."""
+    try:
+        found = mismatch(Dataset(root, box=box), given=box is not None)
+    except ClrefractError as exc:  # no background to compare: said, not a problem
+        notes.append(f"the panorama is not checked against the photographs: {exc}")
+        return
+    if found.needs_registration():
+        notes.append(
+            f"warning: the background differs from the panorama as stated ({found.words()}): "
+            "`clrefract fit` registers it before its start (--register auto), and "
+            f"`clrefract dataset register-env --exposure --poses --write {root}` stores it"
+        )
+
+
+def register(
+    ds: Dataset,
     exposure: bool = False,
-    write: bool = False,
-    box: Box | None = None,
+    given: bool = False,
     keep_rotation: bool = False,
     seed: int = 0,
     poses: bool = False,
-) -> dict:
+) -> tuple[dict, Corrections]:
     """Register a dataset's panorama (unless keep_rotation); with `poses`, turn each camera
-    onto it; with `exposure`, estimate each view's exposure_scale and white_balance; with
-    `write`, store them (scene.json's
-    envmap_rotation, the transforms files' frames), keeping every other key. What it found,
-    as a JSON-able dict."""
-    given = box is not None
-    ds = Dataset(root, box=box)
-    box = ds.box
-    views = background_views(ds, box)
-    seen = [v for v in views if len(v.dirs) >= MIN_VIEW_PIXELS]
-    total = sum(v.camera.width * v.camera.height for v in views)
-    past = sum(len(v.dirs) for v in seen)
-    whole = past < MIN_SHARE * total and not given
-    if whole:
-        views = background_views(ds, box, whole=True)
-        seen = [v for v in views if len(v.dirs) >= MIN_VIEW_PIXELS]
-    if not seen:
-        raise no_background_error(ds, box)
+    onto it; with `exposure`, estimate each view's exposure_scale and white_balance. `given`:
+    whether ds's box was the user's (then only the pixels past it are used). What it found
+    (a JSON-able dict) and the corrections, not yet applied."""
+    views, whole = _background(ds, given)
+    seen = _seen(ds, views)
     env = EnvMap.from_file(ds.root / ds.scene.envmap)  # its own frame: the rotation is sought
     old = ds.scene.envmap_rotation
     starts = [] if old is None else [angles_of(old)]
@@ -378,9 +520,7 @@ def calibrate(
         angles = register_rotation(env, seen, starts, seed=seed).angles
     if whole:
         views = inliers(env, views, angles)
-        seen = [v for v in views if len(v.dirs) >= MIN_VIEW_PIXELS]
-        if not seen:
-            raise no_background_error(ds, box)
+        seen = _seen(ds, views)
     if keep_rotation:
         rms = log_residual(env, seen, angles, seed)
         reg = Registration(angles, rms, rms)
@@ -388,6 +528,7 @@ def calibrate(
         # the first start is what the residual "before" is measured at
         reg = register_rotation(env, seen, [*(starts or [np.zeros(3)]), angles], seed=seed)
         angles = np.round(reg.angles, 4)
+    out = Corrections(None if keep_rotation else angles.tolist())
     info: dict = {
         "dataset": str(ds.root),
         "envmap_rotation": np.round(angles, 4).tolist(),
@@ -406,20 +547,19 @@ def calibrate(
         info["view_turns_deg"] = [
             None if t is None else round(rotation_angle(np.eye(3), t), 4) for t in turns
         ]
+        out.turns = {(v.source.name, v.index): t for v, t in zip(views, turns) if t is not None}
         views = [
             v if t is None else View(v.source, v.index, v.camera, v.dirs @ t.T, v.rgb)
             for v, t in zip(views, turns, strict=True)
         ]
-    gains = estimate_gains(env, angles, views) if exposure else []
-    updates: dict[Path, dict[int, tuple[float, list[float]]]] = {}
     if exposure:
         info["frames"] = []
-        for v, g in zip(views, gains, strict=True):
+        for v, g in zip(views, estimate_gains(env, angles, views), strict=True):
             if g is None:
                 continue
             now = v.camera.exposure * np.asarray(v.camera.white_balance)
             e, wb = split_gain(now * g)
-            updates.setdefault(v.source, {})[v.index] = (e, wb)
+            out.gains[(v.source.name, v.index)] = (e, wb)
             info["frames"].append(
                 {
                     "frame": f"{v.source.name}: frames[{v.index}]",
@@ -428,31 +568,6 @@ def calibrate(
                     "white_balance": [round(x, 6) for x in wb],
                 }
             )
-    info["written"] = []
-    if write:
-        turned = {v.source for v, t in zip(views, turns) if t is not None}
-        edits = {path: read_json(path) for path in {*updates, *turned}}
-        for v, t in zip(views, turns):
-            if t is not None:
-                fr = edits[v.source]["frames"][v.index]
-                c2w = np.asarray(fr["transform_matrix"], float)
-                c2w[:3, :3] = t @ c2w[:3, :3]
-                fr["transform_matrix"] = c2w.tolist()
-        for path, frames in updates.items():
-            for k, (e, wb) in frames.items():
-                fr = edits[path]["frames"][k]
-                fr["exposure_scale"] = round(e, 6)
-                fr["white_balance"] = [round(x, 6) for x in wb]
-        scene_path = ds.root / SCENE_FILE
-        scene = read_json(scene_path) if scene_path.is_file() else {}
-        if not keep_rotation:
-            scene["envmap_rotation"] = angles.tolist()
-        for path, d in edits.items():
-            write_json(path, d)
-            info["written"].append(str(path))
-        if not keep_rotation:
-            write_json(scene_path, scene)
-            info["written"].append(str(scene_path))
     logger.info(
         f"{ds.root}: panorama rotation {np.round(angles, 4).tolist()} degrees, RMS log "
         f"residual {reg.residual:.4f} (before {reg.residual_before:.4f})"
@@ -462,7 +577,34 @@ def calibrate(
             f"{ds.root}: the background pixels match the panorama poorly (RMS log residual "
             f"{reg.residual:.2f}): is it the right panorama, and does the box hold the object?"
         )
+    return info, out
+
+
+def calibrate(
+    root,
+    exposure: bool = False,
+    write: bool = False,
+    box: Box | None = None,
+    keep_rotation: bool = False,
+    seed: int = 0,
+    poses: bool = False,
+) -> dict:
+    """`dataset register-env`: `register` a dataset folder (`box`: the user's); with `write`,
+    store what it found in its files (scene.json's envmap_rotation, the transforms files'
+    frames), keeping every other key. What it found, as a JSON-able dict."""
+    ds = Dataset(root, box=box)
+    info, found = register(ds, exposure, box is not None, keep_rotation, seed, poses)
+    info["written"] = found.write(ds.root) if write else []
     return info
+
+
+REGISTRATION_FILE = "registration.json"  # a run folder's Corrections (`fit --register`)
+
+
+def run_corrections(run) -> Corrections | None:
+    """The registration a fit made and kept in its run folder, None without one."""
+    path = Path(run) / REGISTRATION_FILE
+    return Corrections.from_dict(read_json(path), path) if path.is_file() else None
 
 
 def angles_of(value) -> np.ndarray:

@@ -212,7 +212,7 @@ def refine_positions(dataset, run, write: bool = False, runtime=None) -> dict:
     """Estimate each training camera's position against the field of a run folder (see
     estimate_offsets); with `write`, move the cameras in the training transforms file,
     keeping every other key. What it found, as a JSON-able dict."""
-    from .evaluate import check_run, load_model, run_config
+    from .evaluate import check_run, load_model, run_config, run_dataset
 
     run = Path(run)
     check_run(run)
@@ -223,7 +223,7 @@ def refine_positions(dataset, run, write: bool = False, runtime=None) -> dict:
         )
     notes: list[str] = []
     cfg = run_config(run, notes)
-    ds = Dataset(dataset, box=box_of(cfg.box) if cfg.box else None)
+    ds = run_dataset(run, Path(dataset), box_of(cfg.box) if cfg.box else None)
     source = ds.root / ds.scene.train
     doc = read_json(source) if write else None  # unreadable: refused before any work
     model = load_model(run, ds, notes, runtime=runtime, cfg=cfg)

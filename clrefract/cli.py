@@ -10,6 +10,7 @@ import copy
 import json
 import logging
 import math
+import os
 import re
 import sys
 import time
@@ -215,7 +216,13 @@ def _cmd_render(args) -> int:
     if args.dataset:
         from .dataset import Dataset
 
-        dataset = Dataset(Path(args.dataset))
+        run = Path(args.field)
+        if run.is_dir() and (run / "run.json").is_file():  # as the fit saw it: registered
+            from .evaluate import run_dataset
+
+            dataset = run_dataset(run, Path(args.dataset))
+        else:
+            dataset = Dataset(Path(args.dataset))
         box = dataset.box
     field = _field_for_render(args.field, box)
     box = field.tracing_box(box)
@@ -421,6 +428,10 @@ def _cmd_dataset_check(args) -> int:
     notes: list[str] = []
     box = box_of(args.box) if args.box else None
     problems = check_dataset(Path(args.dir), notes, box=box)
+    if not problems:
+        from .calibrate import describe_background
+
+        describe_background(Path(args.dir), box, notes)
     for n in notes:
         print(f"{args.dir}: {n}")
     for p in problems:
@@ -1125,6 +1136,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("clrefract: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `clrefract ... | head`: the reader left, as with any Unix tool
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no flush error at exit
+        return 141
     finally:
         end()
 

@@ -452,6 +452,21 @@ class Dataset:
     def box(self) -> Box:
         return self.scene.box
 
+    def frames(self) -> list[tuple[Path, int, Camera]]:
+        """Every frame once, in its file's order: (its transforms file, its place in that
+        file's frames, its camera), the camera being the one `train` or `test` holds."""
+        train, test = self.root / self.scene.train, self.root / self.scene.test
+        if test != train:
+            return [(train, k, c) for k, c in enumerate(self.train)] + [
+                (test, k, c) for k, c in enumerate(self.test)
+            ]
+        every, n = self.scene.holdout_every, len(self.train) + len(self.test)
+        # holdout_split's order: every k-th frame a test view, the rest training views
+        return [
+            (train, i, self.test[i // every] if i % every == 0 else self.train[i - i // every - 1])
+            for i in range(n)
+        ]
+
     def envmap(self) -> EnvMap:
         return EnvMap.from_file(self.root / self.scene.envmap, self.scene.envmap_matrix())
 

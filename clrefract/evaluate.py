@@ -111,6 +111,24 @@ def dataset_of(run: Path, dataset: Path | None) -> Path:
     return Path(named)
 
 
+def run_dataset(run: Path, dataset: Path | None, box=None):
+    """The dataset a run is evaluated on (`dataset_of`), as the fit saw it: its own dataset
+    with the registration the fit kept (fit --register), any other as it is."""
+    from .calibrate import run_corrections
+    from .dataset import Dataset
+
+    ds = Dataset(dataset_of(run, dataset), box=box)
+    corrections = run_corrections(run)
+    if corrections is not None and _is_runs_own(run, ds.root):
+        corrections.apply(ds)
+    return ds
+
+
+def _is_runs_own(run: Path, root: Path) -> bool:
+    named = _run_json(run).get("dataset")
+    return bool(named) and Path(named).resolve() == Path(root).resolve()
+
+
 def load_model(run: Path, ds, notes: list[str], runtime=None, cfg=None):
     """The model a run folder holds, ready to render the dataset's views (`cfg`: the run's
     configuration, read from it when None)."""
@@ -238,7 +256,7 @@ def evaluate_run(
 ) -> dict:
     """Scores of a run on its dataset's test views (all, or the first `views`); `samples`
     surface points per side for the chamfer distance (the protocol's 100k unless told)."""
-    from .dataset import Dataset, box_of
+    from .dataset import box_of
     from .mesh import read_mesh
     from .report import scene_truth
 
@@ -247,7 +265,7 @@ def evaluate_run(
     notes: list[str] = []
     cfg = None if (run / "straight.npz").is_file() else run_config(run, notes)
     box = box_of(cfg.box) if cfg is not None and cfg.box else None  # the fit's --box
-    ds = Dataset(dataset_of(run, dataset), box=box)
+    ds = run_dataset(run, dataset, box)
     model = load_model(run, ds, notes, runtime=runtime, cfg=cfg)
     out = ensure_out_dir(out or run / "eval", "eval folder")
     env = ds.envmap()

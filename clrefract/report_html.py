@@ -119,15 +119,15 @@ def _json_file(path: Path, notes: list[str]) -> dict | None:
 def _dataset_and_model(run: Path, dataset: Path | None, device: str | None, notes: list[str]):
     """The run's dataset and its model (evaluate's: renders views, evaluates eta), or None
     for what cannot be had (named in `notes`)."""
-    from .dataset import Dataset, box_of
+    from .dataset import box_of
     from .errors import ClrefractError
-    from .evaluate import EtaModel, dataset_of, load_model
+    from .evaluate import EtaModel, load_model, run_dataset
 
     try:
         fitted = not (run / "straight.npz").is_file()
         cfg = _run_config(run, notes) if fitted else None
         box = box_of(cfg.box) if cfg is not None and cfg.box else None
-        ds = Dataset(dataset_of(run, dataset), box=box)
+        ds = run_dataset(run, dataset, box)
     except ClrefractError as exc:
         notes.append(f"no dataset ({exc}): views not rendered, no surface")
         return None, None

@@ -177,3 +177,120 @@ def test_poses_turned_back_onto_the_panorama(sphere_25x48, tmp_path):
     for cam, t in zip(load_transforms(path), true, strict=True):
         assert rotation_angle(np.eye(3), cam.c2w[:3, :3] @ t[:3, :3].T) < 0.03
         assert np.allclose(cam.c2w[:3, 3], t[:3, 3])
+
+
+def test_frames_pair_each_camera_with_its_place_in_its_file(sphere_25x48, tmp_path):
+    # two transforms files: each file's frames in order; one file split by holdout: its
+    # frames in order, each the very camera `train` or `test` holds
+    ds = Dataset(sphere_25x48)
+    want = [
+        (name, k, cam.file_path)
+        for name in ("transforms_train.json", "transforms_test.json")
+        for k, cam in enumerate(load_transforms(sphere_25x48 / name))
+    ]
+    assert [(s.name, k, c.file_path) for s, k, c in ds.frames()] == want
+    root = tmp_path / "one"
+    shutil.copytree(sphere_25x48, root)
+    scene = json.loads((root / "scene.json").read_text())
+    scene.update(test="transforms_train.json", holdout_every=4)
+    (root / "scene.json").write_text(json.dumps(scene))
+    ds = Dataset(root)
+    frames = ds.frames()
+    file = load_transforms(root / "transforms_train.json")
+    assert [(k, c.file_path) for _, k, c in frames] == [
+        (k, c.file_path) for k, c in enumerate(file)
+    ]
+    held = [c for _, k, c in frames if k % 4 == 0]
+    assert len(held) == len(ds.test) and all(a is b for a, b in zip(held, ds.test, strict=True))
+    assert sum(any(c is t for t in ds.train) for _, _, c in frames) == len(ds.train)
+
+
+def test_corrections_in_memory_are_what_the_written_files_read(rotated, tmp_path):
+    from clrefract.calibrate import Corrections, mismatch, register
+
+    root = tmp_path / "d"
+    shutil.copytree(rotated[0], root)
+    assert mismatch(Dataset(root)).needs_registration()
+    _, found = register(Dataset(root), exposure=True, poses=True)
+    kept = Corrections.from_dict(json.loads(json.dumps(found.to_dict())), root)
+    memory = Dataset(root)
+    kept.apply(memory)
+    found.write(root)
+    disk = Dataset(root)
+    assert rotation_angle(memory.scene.envmap_rotation, disk.scene.envmap_rotation) < 1e-6
+    assert rotation_angle(disk.scene.envmap_rotation, TURN) < 0.2
+    for (_, _, a), (_, _, b) in zip(memory.frames(), disk.frames(), strict=True):
+        assert np.abs(a.c2w - b.c2w).max() < 1e-9
+        assert a.exposure == pytest.approx(b.exposure, rel=1e-9)
+        assert a.white_balance == pytest.approx(b.white_balance, rel=1e-9)
+        found_gain = a.exposure * np.array(a.white_balance)
+        assert np.abs(found_gain / rotated[1][a.file_path] - 1).max() < 0.01, a.file_path
+    # registered, nothing is left to register
+    assert not mismatch(memory).needs_registration()
+
+
+def test_check_tells_a_dataset_that_needs_registering_from_a_clean_one(
+    rotated, sphere_25x48, capsys
+):
+    from clrefract.calibrate import (
+        MISMATCH_GAIN_LOG,
+        MISMATCH_RESIDUAL,
+        describe_background,
+        mismatch,
+    )
+
+    turned = mismatch(Dataset(rotated[0]))
+    assert turned.residual > 2 * MISMATCH_RESIDUAL and turned.gain_log > 2 * MISMATCH_GAIN_LOG
+    clean = mismatch(Dataset(sphere_25x48))
+    assert clean.residual < MISMATCH_RESIDUAL / 4 and clean.gain_log < MISMATCH_GAIN_LOG / 10
+    notes: list[str] = []
+    describe_background(rotated[0], None, notes)
+    assert len(notes) == 1 and "register-env --exposure --poses --write" in notes[0], notes
+    notes = []
+    describe_background(sphere_25x48, None, notes)
+    assert notes == []
+    assert main(["dataset", "check", str(rotated[0])]) == 0  # a warning, not a problem
+    out = capsys.readouterr().out
+    assert "warning: the background differs from the panorama" in out and out.endswith("OK\n")
+
+
+def test_a_fit_registers_what_its_dataset_needs_and_its_readers_apply_it(rotated, tmp_path):
+    # the sphere with its panorama turned and its frames' gains unknown: the fit registers
+    # both into its run folder, leaves the dataset's files as they are, and eval scores the
+    # run's views as the fit did; told not to, it starts from the unregistered masks
+    root = rotated[0]
+    files = {p.name: p.read_bytes() for p in root.glob("*.json")}
+    fit = ["fit", str(root), "--field-kind", "voxel", "--grid-res", "16", "--step", "2"]
+    fit += ["--iterations", "4", "-q"]
+    run = tmp_path / "run"
+    assert main([*fit, "--out", str(run)]) == 0
+    assert {p.name: p.read_bytes() for p in root.glob("*.json")} == files
+    kept = json.loads((run / "registration.json").read_text())
+    assert rotation_angle(kept["envmap_rotation"], TURN) < 0.2
+    assert len(kept["frames"]) == 12
+    for f in kept["frames"]:
+        gain = f["exposure_scale"] * np.array(f["white_balance"])
+        cam = load_transforms(root / f["file"])[f["index"]]
+        assert np.abs(gain / rotated[1][cam.file_path] - 1).max() < 0.01
+    results = json.loads((run / "results.json").read_text())
+    assert main(["-q", "eval", str(run), "--out", str(tmp_path / "eval")]) == 0
+    scored = json.loads((tmp_path / "eval" / "eval.json").read_text())
+    assert scored["psnr"] == pytest.approx(results["test_psnr"], abs=0.01)
+    off = tmp_path / "off"
+    assert main([*fit, "--out", str(off), "--register", "off"]) == 0
+    assert not (off / "registration.json").exists()
+    unregistered = json.loads((off / "results.json").read_text())["test_psnr"]
+    assert results["test_psnr"] > unregistered + 3, (results["test_psnr"], unregistered)
+
+
+def test_a_fit_whose_views_hold_no_background_goes_on_as_stated(sphere_8x24, tmp_path, capsys):
+    # a box that fills every view leaves no pixel that sees the panorama straight
+    fit = ["fit", str(sphere_8x24), "--box", "-50,-50,-50,50,50,50", "--field-kind", "voxel"]
+    fit += ["--iterations", "2", "--grid-res", "8", "--step", "4", "--test-views", "1"]
+    assert main([*fit, "--out", str(tmp_path / "auto")]) == 0
+    err = capsys.readouterr().err
+    assert "register: not checked" in err and "no background pixels" in err
+    assert not (tmp_path / "auto" / "registration.json").exists()
+    # told to register, it cannot: one line, status 2, and no run left behind
+    _refused(capsys, [*fit, "--out", str(tmp_path / "on"), "--register", "on"], "no background")
+    assert not (tmp_path / "on").exists()

@@ -186,6 +186,12 @@ class FitConfig:
     test_views: int = -1  # test views rendered at the end (-1: all)
     # the object's box in mm, xmin, ymin, zmin, xmax, ymax, zmax (--box); (): the dataset's
     box: tuple = ()
+    # the panorama's rotation, each view's exposure and white balance and its camera's
+    # rotation, fitted to the background pixels before the start (`dataset register-env`, kept
+    # in the run folder): "auto" where the background differs from the panorama as the
+    # dataset states it (calibrate.Mismatch), "on", or "off". A rendered capture with its
+    # panorama turned by a few degrees and 0.3 EV of exposure jitter fitted at 17 dB unregistered
+    register: str = "auto"
 
     def validate(self) -> None:
         """The checks every field kind shares (the kind's own: kinds.py)."""
@@ -400,6 +406,10 @@ HELP = {
     "test_views": "test views rendered at the end (-1: all)",
     "box": "the object's box in mm, instead of scene.json's or the cameras' (default: the "
     "dataset's)",
+    "register": "fit the panorama's rotation, each view's exposure and white balance and its "
+    "camera's rotation to the background pixels before the start, kept in the run folder "
+    "(registration.json): auto where the background differs from the panorama as the dataset "
+    "states it, on, or off (default: auto)",
 }
 
 
@@ -418,6 +428,7 @@ CHOICES = {
     "adjoint": ADJOINTS,
     "precision": ("float32", "float64"),
     "loss": ("auto", "srgb", "srgb420", "linear"),
+    "register": ("auto", "on", "off"),
 }
 KNOWN = {f.name: f for f in fields(FitConfig)}
 

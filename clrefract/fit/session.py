@@ -15,6 +15,7 @@ from ..errors import ClrefractError
 from ..imageio import ensure_out_dir
 from .config import FitConfig
 from .kinds import candidate_config, guide_config, kind_of, make_field
+from .registration import register_run, share_registration
 from .runfolder import START_FILES, RunFolder
 from .starts import NoObject
 from .trainer import Fit
@@ -45,6 +46,7 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
     ensure_out_dir(folder.path, "run folder")
     had = {name for name in START_FILES if (folder / name).exists()}
     try:
+        register_run(dataset, folder, cfg, stream or sys.stderr)
         return start_run(dataset, folder, cfg, stream)
     except BaseException:
         # a start that failed (or was interrupted) leaves no run behind, only its search's
@@ -120,6 +122,7 @@ def choose_model(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> Fi
     for name in names:
         sub = RunFolder(folder.path / "candidates" / name)
         ensure_out_dir(sub.path, "run folder")
+        share_registration(folder, sub)
         out.write(f"model: starting {name}\n")
         if not sub.holds_run():  # a candidate started before is taken up
             try:

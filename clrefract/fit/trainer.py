@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 
+from ..calibrate import run_corrections
 from ..dataset import Dataset, box_of
 from ..errors import ClrefractError
 from .binding import Bound, engine_for, forward_settings
@@ -31,6 +32,9 @@ class Fit:
 
         self.ds = Dataset(dataset, box=box_of(cfg.box) if cfg.box else None)
         self.out = folder or RunFolder(out)
+        corrections = run_corrections(self.out.path)  # registration.py's, where it registered
+        if corrections is not None:
+            corrections.apply(self.ds)
         self.cfg, self.kind = cfg, kind_of(cfg)
         self.stream = stream or sys.stderr
         self.runtime = Runtime(device_for(cfg.device), queues=cfg.queues)
