@@ -154,24 +154,32 @@ def test_bad_input_refused_in_one_line(sphere_8x24, tmp_path, capsys):
     assert (root / "transforms_train.json").read_text() == frames
 
 
-def test_poses_turned_back_onto_the_panorama(sphere_25x48, tmp_path):
-    # each recorded camera turned by 0.3 degrees (half a pixel at 48 x 48) about a random
-    # axis; its background pixels turn it back, its position stays
+def _turned_cameras(clean, root, degrees: float) -> list[np.ndarray]:
+    """A copy of `clean` at `root` whose training cameras are each turned by `degrees` about
+    a random axis; their true poses."""
     from clrefract.calibrate import rotvec_matrix
 
-    root = tmp_path / "d"
-    shutil.copytree(sphere_25x48, root)
+    shutil.copytree(clean, root)
     rng = np.random.default_rng(5)
     path = root / "transforms_train.json"
     d = json.loads(path.read_text())
     true = [np.array(f["transform_matrix"]) for f in d["frames"]]
     for f in d["frames"]:
         axis = rng.normal(size=3)
-        turn = rotvec_matrix(np.radians(0.3) * axis / np.linalg.norm(axis))
+        turn = rotvec_matrix(np.radians(degrees) * axis / np.linalg.norm(axis))
         c2w = np.array(f["transform_matrix"])
         c2w[:3, :3] = turn @ c2w[:3, :3]
         f["transform_matrix"] = c2w.tolist()
     path.write_text(json.dumps(d))
+    return true
+
+
+def test_poses_turned_back_onto_the_panorama(sphere_25x48, tmp_path):
+    # each recorded camera turned by 0.3 degrees (half a pixel at 48 x 48) about a random
+    # axis; its background pixels turn it back, its position stays
+    root = tmp_path / "d"
+    true = _turned_cameras(sphere_25x48, root, 0.3)
+    path = root / "transforms_train.json"
     info = calibrate(root, box=box_of(BOX), keep_rotation=True, poses=True, write=True)
     assert all(abs(t - 0.3) < 0.05 for t in info["view_turns_deg"][: len(true)])
     for cam, t in zip(load_transforms(path), true, strict=True):
@@ -230,7 +238,7 @@ def test_corrections_in_memory_are_what_the_written_files_read(rotated, tmp_path
 
 
 def test_check_tells_a_dataset_that_needs_registering_from_a_clean_one(
-    rotated, sphere_25x48, capsys
+    rotated, sphere_25x48, capsys, tmp_path
 ):
     from clrefract.calibrate import (
         MISMATCH_GAIN_LOG,
@@ -243,6 +251,13 @@ def test_check_tells_a_dataset_that_needs_registering_from_a_clean_one(
     assert turned.residual > 2 * MISMATCH_RESIDUAL and turned.gain_log > 2 * MISMATCH_GAIN_LOG
     clean = mismatch(Dataset(sphere_25x48))
     assert clean.residual < MISMATCH_RESIDUAL / 4 and clean.gain_log < MISMATCH_GAIN_LOG / 10
+    assert clean.turn_deg < 0.005 and not clean.needs_registration()
+    # the training cameras turned by 0.1 degree (a sixth of a pixel): to first order, each
+    # view's background pixels give the turn (the test views' cameras are not turned)
+    _turned_cameras(sphere_25x48, tmp_path / "t", 0.1)
+    cams = mismatch(Dataset(tmp_path / "t"))
+    assert cams.residual < MISMATCH_RESIDUAL and cams.gain_log < MISMATCH_GAIN_LOG
+    assert 0.08 < cams.turn_deg < 0.12 and cams.needs_registration()
     notes: list[str] = []
     describe_background(rotated[0], None, notes)
     assert len(notes) == 1 and "register-env --exposure --poses --write" in notes[0], notes
