@@ -8,7 +8,8 @@
                                points3D (.bin or .txt), images in SRC/images (colmap.py);
                                its world is turned so that up is +z (--up)
 Poses are multiplied by --scale (or the scale --known-distance gives) into millimetres, frames
-and masks are copied beside the new transforms files, and scene.json records the box
+and masks (masks/<frame>.png, or in a COLMAP project COLMAP's masks/<image name>.png) are
+copied beside the new transforms files, and scene.json records the box
 (--pose-box, else instant-ngp's, else a COLMAP model's sparse points, else the region the
 cameras look at), the index range and where the capture came from. Nothing in an existing
 dataset is replaced.
@@ -286,6 +287,12 @@ def import_capture(
             if capture is not None:  # images/<name> in both, the name as the model gives it
                 (out / cam.file_path).parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(capture.sources[cam.file_path], out / cam.file_path)
+                # COLMAP's own naming, masks/<image name>.png, kept and named in the frame
+                rel = Path(MASK_DIR) / f"{Path(cam.file_path).relative_to('images')}.png"
+                if folder_mask is None and not cam.mask_path and (root / rel).is_file():
+                    (out / rel).parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copyfile(root / rel, out / rel)
+                    cam.mask_path = rel.as_posix()
             else:
                 cam.file_path = _copy_file(root, cam.file_path, out, hint)
             if cam.mask_path:

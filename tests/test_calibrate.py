@@ -287,6 +287,14 @@ def test_a_fit_registers_what_its_dataset_needs_and_its_readers_apply_it(rotated
         gain = f["exposure_scale"] * np.array(f["white_balance"])
         cam = load_transforms(root / f["file"])[f["index"]]
         assert np.abs(gain / rotated[1][cam.file_path] - 1).max() < 0.01
+    # the run's own dataset is read registered (eval, report, render, refine-positions);
+    # another is read as it states itself
+    from clrefract.evaluate import run_dataset
+
+    own = run_dataset(run, None)
+    assert rotation_angle(own.scene.envmap_rotation, kept["envmap_rotation"]) < 1e-9
+    shutil.copytree(root, tmp_path / "copy")
+    assert run_dataset(run, tmp_path / "copy").scene.envmap_rotation is None
     results = json.loads((run / "results.json").read_text())
     assert main(["-q", "eval", str(run), "--out", str(tmp_path / "eval")]) == 0
     scored = json.loads((tmp_path / "eval" / "eval.json").read_text())

@@ -213,6 +213,28 @@ def test_export_then_import_gives_the_same_rays_and_pixels(dataset, tmp_path, ca
     _refused(capsys, ["dataset", "export-colmap", str(dataset), "--out", str(proj)], str(proj))
 
 
+def test_masks_in_colmaps_own_naming_come_with_the_import(dataset, tmp_path, capsys):
+    # COLMAP names an image's mask masks/<image name>.png (IMG_1.jpg: masks/IMG_1.jpg.png)
+    proj, out = tmp_path / "proj", tmp_path / "data"
+    assert main(["dataset", "export-colmap", str(dataset), "--out", str(proj)]) == 0
+    masks = {}
+    for k, image in enumerate(sorted((proj / "images" / "train").iterdir())[:3]):
+        mask = np.zeros((32, 32), np.uint8)
+        mask[4 + k : 20, 6:26] = 255  # a different mask per frame
+        path = proj / "masks" / "train" / f"{image.name}.png"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_png(path, mask)
+        masks[image.name] = mask > 127
+    assert main(["dataset", "import", str(proj), "--out", str(out), "--scale", "1"]) == 0
+    capsys.readouterr()
+    ds = Dataset(out)
+    found = {Path(c.file_path).name: ds.mask(c) for c in ds.train if ds.has_mask(c)}
+    assert found.keys() == masks.keys()
+    for name, mask in masks.items():
+        assert np.array_equal(found[name], mask), name
+    assert not any(ds.has_mask(c) for c in ds.test)
+
+
 def test_known_distance_also_scales_a_transforms_capture(dataset, tmp_path, capsys):
     orig = Dataset(dataset)
     mm = 3.0 * _distance(orig, "r_001.exr", "r_002.exr")
