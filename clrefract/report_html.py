@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .calibrate import REGISTRATION_FILE
 from .cameras import frame_stem
 from .imageio import atomic_path
 from .metrics import psnr_ssim
@@ -68,6 +69,10 @@ def write_html_report(
     parts.append(
         _section("Surface", _figure_section(lambda: _surface_png(model, ds), notes, "surface"))
     )
+    kept = run / REGISTRATION_FILE
+    registered = _json_file(kept, notes) if kept.is_file() else None
+    if registered and registered.get("found"):
+        parts.append(_section("Registration", _registration_html(registered["found"], notes)))
     parts.append(_section("Settings (config.toml)", f"<pre>{html.escape(settings)}</pre>"))
     if notes:
         items = "".join(f"<li>{html.escape(n)}</li>" for n in notes)
@@ -294,6 +299,36 @@ def _loss_figure(run: Path, rows: list[dict], results: dict) -> bytes | None:
     if png.is_file() and png.stat().st_mtime >= metrics.stat().st_mtime:
         return png.read_bytes()
     return _fig_png(metrics_figure(rows, results.get("best_iteration")))
+
+
+def _registration_html(found: dict, notes: list[str]) -> str:
+    """What the fit's registration found (fit --register): the panorama's turn, the residual
+    before and after, and per view its exposure and its camera's turn."""
+    before, after = found["residual_log_rms_before"], found["residual_log_rms"]
+    rows = (
+        ("panorama rotation (degrees)", ", ".join(f"{a:g}" for a in found["envmap_rotation"])),
+        ("turned by (degrees)", _num(found["turned_deg"])),
+        ("RMS log residual", f"{_num(before)} before, {_num(after)} after"),
+        ("background pixels", f"{found['background_pixels']} in {found['views']} views"),
+    )
+    table = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
+    return f"<table>{table}</table>" + _figure_section(
+        lambda: _registration_figure(found), notes, "registration"
+    )
+
+
+def _registration_figure(found: dict) -> bytes | None:
+    exposure = [f["exposure_scale"] for f in found.get("frames", [])]
+    turns = [np.nan if t is None else t for t in found.get("view_turns_deg", [])]
+    if not exposure and not turns:
+        return None
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 2.6), layout="constrained")
+    axes[0].plot(exposure, ".")
+    axes[0].set(xlabel="view", ylabel="exposure_scale", title="exposure found")
+    axes[1].plot(turns, ".")
+    axes[1].set(xlabel="view", ylabel="degrees", title="camera turned by")
+    return _fig_png(fig)
 
 
 def _heat(err: np.ndarray, gain: float = 4.0) -> np.ndarray:

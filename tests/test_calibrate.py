@@ -295,6 +295,8 @@ def test_a_fit_registers_what_its_dataset_needs_and_its_readers_apply_it(rotated
     assert rotation_angle(own.scene.envmap_rotation, kept["envmap_rotation"]) < 1e-9
     shutil.copytree(root, tmp_path / "copy")
     assert run_dataset(run, tmp_path / "copy").scene.envmap_rotation is None
+    page = (run / "report.html").read_text()  # what it found, beside the scores
+    assert "<h2>Registration</h2>" in page and "registration figure failed" not in page
     results = json.loads((run / "results.json").read_text())
     assert main(["-q", "eval", str(run), "--out", str(tmp_path / "eval")]) == 0
     scored = json.loads((tmp_path / "eval" / "eval.json").read_text())
