@@ -110,9 +110,13 @@ def inliers(env: EnvMap, views: list[View], angles) -> list[View]:
     return out
 
 
+class NoBackground(ClrefractError):
+    """No pixel of any view sees the panorama straight."""
+
+
 def no_background_error(ds: Dataset, box: Box) -> ClrefractError:
     where = ds.root / SCENE_FILE if (ds.root / SCENE_FILE).is_file() else ds.root
-    return ClrefractError(
+    return NoBackground(
         f"{where}: no background pixels: every camera ray meets the box "
         f"{list(box.lo)}..{list(box.hi)} mm, so no pixel sees the panorama straight "
         "(give a smaller --box that still holds the object)"
@@ -524,7 +528,7 @@ def describe_background(root: Path, box: Box | None, notes: list[str]) -> None:
     (its rotation, the frames' exposures), with what registers it."""
     try:
         found = mismatch(Dataset(root, box=box), given=box is not None)
-    except ClrefractError as exc:  # no background to compare: said, not a problem
+    except NoBackground as exc:  # said, not a problem
         notes.append(f"the panorama is not checked against the photographs: {exc}")
         return
     if found.needs_registration():

@@ -10,9 +10,8 @@ import shutil
 
 import numpy as np
 
-from ..calibrate import REGISTRATION_FILE, mismatch, register
+from ..calibrate import REGISTRATION_FILE, NoBackground, mismatch, register
 from ..dataset import Dataset, box_of
-from ..errors import ClrefractError
 from .config import FitConfig
 from .runfolder import RunFolder
 
@@ -28,7 +27,7 @@ def register_run(dataset, folder: RunFolder, cfg: FitConfig, stream) -> None:
     if cfg.register != "on":  # auto
         try:
             found = mismatch(ds, given, cfg.seed)
-        except ClrefractError as exc:  # no pixel sees the panorama: nothing to register on
+        except NoBackground as exc:  # nothing to register on (bad frames stop the fit here)
             stream.write(f"register: not checked ({exc})\n")
             return
         if not found.needs_registration():
