@@ -16,6 +16,7 @@ from clrefract.cli import main
 from clrefract.dataset import Dataset, box_of, read_frame_image
 from clrefract.errors import ClrefractError
 from clrefract.imageio import read_exr_rgb, write_exr_rgb
+from clrefract.metrics import psnr_ssim
 from clrefract.synth import MakeOptions, make_dataset
 
 TURN = [5.0, -5.0, 5.0]  # degrees about x, y, z
@@ -295,6 +296,14 @@ def test_a_fit_registers_what_its_dataset_needs_and_its_readers_apply_it(rotated
     assert rotation_angle(own.scene.envmap_rotation, kept["envmap_rotation"]) < 1e-9
     shutil.copytree(root, tmp_path / "copy")
     assert run_dataset(run, tmp_path / "copy").scene.envmap_rotation is None
+    # render shows the run's first test view as the photograph, registered, shows it
+    photo = own.image(own.test[0])
+    scores = []
+    for data, out in ((root, "render-own"), (tmp_path / "copy", "render-copy")):
+        argv = ["-q", "render", "--field", str(run), "--dataset", str(data), "--only", "0"]
+        assert main([*argv, "--step", "2", "--out", str(tmp_path / out)]) == 0
+        scores.append(psnr_ssim(read_exr_rgb(next((tmp_path / out).glob("*.exr"))), photo)[0])
+    assert scores[0] > scores[1] + 3, scores
     page = (run / "report.html").read_text()  # what it found, beside the scores
     assert "<h2>Registration</h2>" in page and "registration figure failed" not in page
     results = json.loads((run / "results.json").read_text())
