@@ -213,6 +213,13 @@ def test_fit_config_values(ds, tmp_path, capsys):
     cfg.write_text("lr = [\n")
     refused(capsys, ["fit", ds, "--out", tmp_path / "r", "--config", cfg], "c.toml", "TOML")
     refused(capsys, ["fit", ds, "--out", tmp_path / "r", "--config", tmp_path / "no.toml"], "no")
+    # a key of a fixed set of values, outside it, as the flag would refuse it (refused: the
+    # --out folder left as it was)
+    from clrefract.fit.config import CHOICES
+
+    for key in CHOICES:
+        cfg.write_text(f'{key} = "maybe"\n')
+        refused(capsys, ["fit", ds, "--out", tmp_path / "r", "--config", cfg], key, "'maybe'")
 
 
 # ---- datasets ------------------------------------------------------------------------------

@@ -195,6 +195,10 @@ class FitConfig:
 
     def validate(self) -> None:
         """The checks every field kind shares (the kind's own: kinds.py)."""
+        for key, allowed in CHOICES.items():  # a --config file's values, as the flags' are
+            value = getattr(self, key)
+            if value not in allowed and not (key == "output" and value == ""):
+                raise ClrefractError(f"{key} must be one of {', '.join(allowed)}, got {value!r}")
         if self.box:
             self.box = tuple(box_values(self.box, "box"))
         check_count("batch", self.batch, 1, 2**26)
