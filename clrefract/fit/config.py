@@ -195,10 +195,6 @@ class FitConfig:
 
     def validate(self) -> None:
         """The checks every field kind shares (the kind's own: kinds.py)."""
-        for key, allowed in CHOICES.items():  # a --config file's values, as the flags' are
-            value = getattr(self, key)
-            if value not in allowed and not (key == "output" and value == ""):
-                raise ClrefractError(f"{key} must be one of {', '.join(allowed)}, got {value!r}")
         if self.box:
             self.box = tuple(box_values(self.box, "box"))
         check_count("batch", self.batch, 1, 2**26)
@@ -435,6 +431,15 @@ CHOICES = {
     "register": ("auto", "on", "off"),
 }
 KNOWN = {f.name: f for f in fields(FitConfig)}
+
+
+def check_choices(cfg: FitConfig) -> None:
+    """A --config file's values of the CHOICES keys, refused as the flags' are (after the
+    checks that name a key's choices their own way)."""
+    for key, allowed in CHOICES.items():
+        value = getattr(cfg, key)
+        if value not in allowed and not (key == "output" and value == ""):
+            raise ClrefractError(f"{key} must be one of {', '.join(allowed)}, got {value!r}")
 
 
 def to_toml(cfg: FitConfig) -> str:

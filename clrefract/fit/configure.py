@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ClrefractError
-from .config import FitConfig, coerced, read_toml
+from .config import FitConfig, check_choices, coerced, read_toml
 from .kinds import kind_named
 
 
@@ -29,6 +29,7 @@ def load_config(path: Path | None, overrides: dict) -> FitConfig:
     kind.validate(cfg)
     if cfg.optimizer == "line-search":
         check_line_search(cfg)
+    check_choices(cfg)
     return cfg
 
 
