@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..calibrate import REGISTRATION_FILE
 from ..errors import ClrefractError
 from ..fields.base import Box
 from ..imageio import atomic_path
@@ -26,7 +27,7 @@ from .configure import load_config
 # what a run folder holds that a new run would overwrite
 RUN_FILES = ("checkpoint.npz", "field.npz", "results.json", "start.json", "run.json")
 # what the start of a new run writes, removed again when the start fails
-START_FILES = ("config.toml", "metrics.jsonl", "init.json", "registration.json", *RUN_FILES)
+START_FILES = ("config.toml", "metrics.jsonl", "init.json", REGISTRATION_FILE, *RUN_FILES)
 # run.json's record of where the run came from, kept when its other keys are rewritten
 PROVENANCE = (
     "version",
