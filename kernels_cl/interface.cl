@@ -13,7 +13,8 @@
  *
  * Providers of phi (one per build): SDF_GRID, the tricubic B-spline on the node grid of
  * fields/voxel.py (VOX_NX.. nodes over the box, fd[0..SDF_NODES-1] in C order, eta =
- * fd[SDF_NODES]); SDF_SPHERE, a sphere fd = (cx, cy, cz, R, eta), the closed-form oracle.
+ * fd[SDF_NODES]); SDF_SPHERE, a sphere fd = (cx, cy, cz, R, eta), the closed-form oracle;
+ * SDF_PLANES, a convex polyhedron of that many faces.
  * fp: TOL, OFFSET and MIN_STEP (clrefract/interface.py), then the box and the node counts
  * (common.h, GEO_AT 3). Needs common.h (REAL, atomic_add_real, ST_*) and snell_common.h
  * (real3, refract_or_reflect, box_exit_distance). One ray per work-item: the loops are data
@@ -166,6 +167,60 @@ SDF_INLINE void sdf_splat(FIELD_PARAMS, __global REAL *grad, real3 x, REAL af, r
     atomic_add_real(grad + 1, -af * u.y - (h[3] * ag.x + h[1] * ag.y + h[5] * ag.z));
     atomic_add_real(grad + 2, -af * u.z - (h[4] * ag.x + h[5] * ag.y + h[2] * ag.z));
     atomic_add_real(grad + 3, -af);
+}
+#endif
+
+#if SDF_PLANES
+/* A convex polyhedron, the intersection of SDF_PLANES half-spaces: phi = max_j n_j . (x - c)
+ * - d_j, n_j = a_j / |a_j|, with fd[4j..4j+3] = (a_j, d_j) and c = (POLY_CX, POLY_CY,
+ * POLY_CZ). Exact inside, a lower bound on the distance outside (a safe march at LIP 1); flat
+ * faces and sharp edges, which no spline holds. */
+#define SDF_ETA(fd) ((fd)[4 * SDF_PLANES])
+SDF_INLINE int sdf_face(FIELD_PARAMS, real3 x, REAL *f, real3 *n) {
+    real3 r = x - r3((REAL)POLY_CX, (REAL)POLY_CY, (REAL)POLY_CZ);
+    int k = 0;
+    REAL best = (REAL)-1e30;
+    for (int j = 0; j < SDF_PLANES; ++j) {
+        real3 a = r3(fd[4 * j], fd[4 * j + 1], fd[4 * j + 2]);
+        REAL v = dot(a, r) / sqrt(dot(a, a)) - fd[4 * j + 3];
+        if (v > best) {
+            best = v;
+            k = j;
+        }
+    }
+    *n = unit3(r3(fd[4 * k], fd[4 * k + 1], fd[4 * k + 2]));
+    *f = best;
+    return k;
+}
+
+SDF_INLINE REAL sdf_value(FIELD_PARAMS, real3 x) {
+    REAL f;
+    real3 n;
+    sdf_face(FIELD_ARGS, x, &f, &n);
+    return f;
+}
+
+SDF_INLINE REAL sdf_eval(FIELD_PARAMS, real3 x, real3 *g, REAL *h) {
+    REAL f;
+    sdf_face(FIELD_ARGS, x, &f, g);
+    for (int k = 0; k < 6; ++k) h[k] = 0;
+    return f;
+}
+
+/* The face k that holds x: dphi/da = P (x - c) / |a|, dphi/dd = -1, d grad/da = P / |a|,
+ * P = I - n n^T. */
+SDF_INLINE void sdf_splat(FIELD_PARAMS, __global REAL *grad, real3 x, REAL af, real3 ag) {
+    REAL f;
+    real3 n;
+    int k = sdf_face(FIELD_ARGS, x, &f, &n);
+    real3 a = r3(fd[4 * k], fd[4 * k + 1], fd[4 * k + 2]);
+    real3 r = x - r3((REAL)POLY_CX, (REAL)POLY_CY, (REAL)POLY_CZ);
+    real3 v = af * r + ag;
+    real3 ga = (v - n * dot(n, v)) / sqrt(dot(a, a));
+    atomic_add_real(grad + 4 * k, ga.x);
+    atomic_add_real(grad + 4 * k + 1, ga.y);
+    atomic_add_real(grad + 4 * k + 2, ga.z);
+    atomic_add_real(grad + 4 * k + 3, -af);
 }
 #endif
 

@@ -72,6 +72,10 @@ def load_field_file(path: Path, box: Box | None = None) -> Field:
             from .interface import InterfaceField
 
             return InterfaceField.load(path)
+        if kind == "polytope":
+            from .interface import PolytopeInterface
+
+            return PolytopeInterface.load(path)
         if kind == "hashgrid":
             from .hashgrid import HashGridField
 

@@ -281,11 +281,12 @@ class FitConfig:
 # each key's `clrefract fit --help` text (cli.py appends its default unless the text gives
 # it, as where it depends on the field kind or the optimiser)
 HELP = {
-    "field": "auto (the command line's default): the start tries interface and voxel and keeps "
-    "the one the held-out views prefer; voxel: eta on a grid (any medium); levelset: one "
-    "index inside a sharp surface (glass, water) on a ramp of --width; hashgrid: hash grid + "
-    "MLP; interface: one index inside a zero-width surface, traced by Snell's law at each "
-    "crossing",
+    "field": "auto (the command line's default): the start tries interface, polytope and voxel "
+    "and keeps the one the held-out views prefer; voxel: eta on a grid (any medium); "
+    "levelset: one index inside a sharp surface (glass, water) on a ramp of --width; "
+    "hashgrid: hash grid + MLP; interface: one index inside a zero-width surface, traced by "
+    "Snell's law at each crossing; polytope: one index inside flat faces (a prism, a cube, "
+    "cut glass), the planes of the visual hull's faces moved by Adam",
     "res": "grid resolution (voxel values or level set); 0: one cell per pixel at the object",
     "res_schedule": "voxel grids: coarse-to-fine resolutions before --res, e.g. 16 32 (the "
     "hull start wants the final grid at once)",
@@ -418,7 +419,7 @@ OPTIMIZERS = ("adam", "line-search", "descent")
 # keys of a fixed set of values, as `validate`, kinds.KINDS and configure.py check them
 # ("" for output: ramp from the hull, sigmoid from empty space)
 CHOICES = {
-    "field": ("auto", "interface", "voxel", "levelset", "hashgrid"),
+    "field": ("auto", "interface", "polytope", "voxel", "levelset", "hashgrid"),
     "interp": ("bspline", "smoothstep", "trilinear"),
     "output": ("ramp", "sigmoid"),
     "init": ("hull", "empty"),

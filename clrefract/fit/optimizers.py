@@ -13,7 +13,7 @@ from ..errors import ClrefractError
 from ..metrics import psnr_linear_batch
 from ..smoothing import gaussian_nodes
 from .distil import fit_to_field
-from .finishes import size_index_search
+from .finishes import face_offsets, size_index_search
 from .kinds import KINDS, guide_config, guide_kind, make_field
 from .linesearch import level_set_step
 from .rays import blur_at
@@ -98,7 +98,7 @@ class AdamSteps:
         carry over."""
         res = fit.kind.resolution_at(fit.cfg, fit.it)
         old = fit.field
-        if res == fit.kind.resolution(old):
+        if not fit.kind.grid or res == fit.kind.resolution(old):
             return
         m = old.resampled_values(self.adam.m.reshape(old.values.shape), res)
         v = np.maximum(old.resampled_values(self.adam.v.reshape(old.values.shape), res), 0)
@@ -112,9 +112,14 @@ class AdamSteps:
         """Told each held-out loss as it is measured."""
 
     def finish(self, fit) -> dict:
-        """Leave the field at its best-validated parameters; what the finish did."""
+        """Leave the field at its best-validated parameters, then the kind's own finish;
+        what the finish did."""
         fit.use_best()
-        return {}
+        finish = ADAM_FINISHES.get(fit.kind.adam_finish)
+        return finish(fit) if finish else {}
+
+
+ADAM_FINISHES = {"face-offsets": face_offsets}
 
 
 # the first descent step of a voxel grid tries its rate over 4^6 = 4,096 times down: a
