@@ -843,8 +843,8 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
     p.add_argument(
         "scene",
         help="the paper's solids sphere, prism, drop (exact Snell ground truth); the family "
-        "shapes rounded-cube, cylinder, bowl, two-bodies, vase, random (exact Snell at a "
-        "signed-distance surface); luneburg, blobs (drawn by --seed), grin-rod, grin-lens or "
+        "shapes rounded-cube, cylinder, bowl, two-bodies, vase, random, faceted (exact Snell "
+        "at a signed-distance surface); luneburg, blobs (drawn by --seed), grin-rod, grin-lens or "
         "plume (graded index)",
     )
     p.add_argument("--out", required=True, help="dataset folder to write")
@@ -856,8 +856,8 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
         "--seed",
         type=int,
         default=0,
-        help="seed of the procedural environment (and of the shape, for `random` and "
-        "`blobs`, and of --realistic's flaws)",
+        help="seed of the procedural environment (and of the shape, for `random`, "
+        "`faceted` and `blobs`, and of --realistic's flaws)",
     )
     p.add_argument(
         "--eta", type=float, default=None, help="family shapes: glass index, 1.2 to 1.9 (1.5)"
@@ -1070,14 +1070,14 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
     p.add_argument("--scenes", default="sphere,prism,drop", help="comma-separated scenes")
     p.add_argument(
         "--methods",
-        default="grid,meridian,synapse,vertexnet,interface",
+        default="grid,meridian,synapse,vertexnet,interface,auto",
         help="comma-separated methods",
     )
     p.add_argument(
         "--family-methods",
         default="",
         help="comma-separated methods also run on each solid of the family (the development "
-        "set: rounded-cube, cylinder, bowl, two-bodies, vase, random), e.g. interface",
+        "set: rounded-cube, cylinder, bowl, two-bodies, vase, random, faceted), e.g. interface",
     )
     p.add_argument("--data", help="dataset folder root (default OUT/data)")
     p.add_argument("--page", help=PAGE_HELP + " (the whole protocol only: no --shard)")

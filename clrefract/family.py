@@ -494,8 +494,81 @@ class RandomSolid(SdfSolid):
         return [self.blend, *np.asarray(self.capsules, float).ravel()]
 
 
-SHAPES = {c.kind: c for c in (SdfSphere, RoundedCube, Cylinder, Bowl, TwoBodies, Vase, RandomSolid)}
-FAMILY = ("rounded-cube", "cylinder", "bowl", "two-bodies", "vase", "random")
+@dataclass
+class Faceted(SdfSolid):
+    """Seeded random cut stone: the intersection of 8 to 14 half-spaces n . p <= d (unit
+    normals drawn evenly at random, offsets 9 to 15 mm), flat faces meeting at sharp edges
+    and corners. The signed distance max(n . p - d) is exact inside and a lower bound outside
+    (1-Lipschitz). `faces` ([nx, ny, nz, d] each) is drawn from `seed` when empty, until the
+    faces close a solid within 30 mm, and kept in scene.json."""
+
+    seed: int = 0
+    faces: list = field(default_factory=list)
+    kind = "faceted"
+
+    def _check_params(self):
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int | np.integer):
+            raise ClrefractError(f"{self.kind}: seed must be an integer, got {self.seed!r}")
+        if self.seed < 0:
+            raise ClrefractError(f"{self.kind}: seed must be >= 0, got {self.seed}")
+        if not self.faces:
+            self.faces = self._draw(int(self.seed))
+        f = np.asarray(self.faces, float)
+        if f.ndim != 2 or f.shape[1] != 4 or len(f) < 4 or not np.all(np.isfinite(f)):
+            raise ClrefractError(f"{self.kind}: faces must be 4 or more rows of 4 finite numbers")
+        if not np.all(f[:, 3] > 0) or np.any(np.linalg.norm(f[:, :3], axis=1) == 0):
+            raise ClrefractError(f"{self.kind}: faces need nonzero normals and offsets > 0")
+        f[:, :3] /= np.linalg.norm(f[:, :3], axis=1, keepdims=True)
+        self.faces = f.tolist()
+        if not np.isfinite(self._corner_radius()):
+            raise ClrefractError(f"{self.kind}: the faces close no solid")
+
+    @staticmethod
+    def _draw(seed: int) -> list:
+        rng = np.random.default_rng(seed)
+        while True:
+            k = int(rng.integers(8, 15))
+            n = rng.normal(size=(k, 3))
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+            faces = np.column_stack([n, rng.uniform(9.0, 15.0, k)])
+            if Faceted._corners(faces) <= 30.0:
+                return faces.tolist()
+
+    @staticmethod
+    def _corners(faces: np.ndarray) -> float:
+        """The largest distance of a corner from the origin (inf: the faces close no solid)."""
+        from scipy.spatial import HalfspaceIntersection
+
+        try:
+            hs = HalfspaceIntersection(np.column_stack([faces[:, :3], -faces[:, 3]]), np.zeros(3))
+        except Exception:  # noqa: BLE001 - an unbounded or degenerate intersection
+            return math.inf
+        pts = hs.intersections
+        return float(np.linalg.norm(pts, axis=1).max()) if np.all(np.isfinite(pts)) else math.inf
+
+    def _corner_radius(self) -> float:
+        return self._corners(np.asarray(self.faces, float))
+
+    def local_distance(self, p):
+        f = np.asarray(self.faces, float)
+        return (p @ f[:, :3].T - f[:, 3]).max(axis=1)
+
+    @property
+    def bounding_radius(self):
+        return self._corner_radius()
+
+    def kernel_defines(self):
+        return {**super().kernel_defines(), "NPRIM": len(self.faces)}
+
+    def shape_params(self):
+        return np.asarray(self.faces, float).ravel().tolist()
+
+
+SHAPES = {
+    c.kind: c
+    for c in (SdfSphere, RoundedCube, Cylinder, Bowl, TwoBodies, Vase, RandomSolid, Faceted)
+}
+FAMILY = ("rounded-cube", "cylinder", "bowl", "two-bodies", "vase", "random", "faceted")
 
 
 def make_shape(name: str, eta: float | None = None, tilt=None, seed: int | None = None):
@@ -507,7 +580,7 @@ def make_shape(name: str, eta: float | None = None, tilt=None, seed: int | None 
         kw["eta"] = eta
     if tilt is not None:
         kw["tilt"] = tilt
-    if name == "random" and seed is not None:
+    if name in ("random", "faceted") and seed is not None:
         kw["seed"] = seed
     return SHAPES[name](**kw)
 

@@ -59,6 +59,14 @@ PROTOCOLS: dict[str, dict] = {
                 tighten_hull=False,
                 shell_starts=False,
             ),
+            "auto": dict(
+                res=16,
+                iterations=10,
+                batch=2048,
+                validate_every=5,
+                tighten_hull=False,
+                shell_starts=False,
+            ),
         },
     },
     "quick": {
@@ -76,6 +84,7 @@ PROTOCOLS: dict[str, dict] = {
             "vertexnet": dict(batch=8192),
             # the interface kind's own defaults (kinds.INTERFACE_DEFAULTS: its descent's steps)
             "interface": dict(batch=8192),
+            "auto": dict(batch=8192),  # each candidate's own defaults
         },
     },
     "standard": {
@@ -86,6 +95,7 @@ PROTOCOLS: dict[str, dict] = {
             "synapse": dict(iterations=2400, batch=16384),
             "vertexnet": dict(batch=16384),  # its line search's own count of steps
             "interface": dict(iterations=1200, batch=16384),
+            "auto": dict(batch=16384),
         },
     },
     "full": {

@@ -14,7 +14,8 @@
  * Providers of phi (one per build): SDF_GRID, the tricubic B-spline on the node grid of
  * fields/voxel.py (VOX_NX.. nodes over the box, fd[0..SDF_NODES-1] in C order, eta =
  * fd[SDF_NODES]); SDF_SPHERE, a sphere fd = (cx, cy, cz, R, eta), the closed-form oracle;
- * SDF_PLANES, a convex polyhedron of that many faces.
+ * SDF_PLANES, a convex polyhedron of that many faces, whose crossings are found in closed form
+ * (its sdf_cross replaces the march).
  * fp: TOL, OFFSET and MIN_STEP (clrefract/interface.py), then the box and the node counts
  * (common.h, GEO_AT 3). Needs common.h (REAL, atomic_add_real, ST_*) and snell_common.h
  * (real3, refract_or_reflect, box_exit_distance). One ray per work-item: the loops are data
@@ -222,6 +223,33 @@ SDF_INLINE void sdf_splat(FIELD_PARAMS, __global REAL *grad, real3 x, REAL af, r
     atomic_add_real(grad + 4 * k + 2, ga.z);
     atomic_add_real(grad + 4 * k + 3, -af);
 }
+
+/* The crossing in closed form: a line meets a convex solid on one interval (t_in, t_out),
+ * clipped plane by plane; from outside the crossing is t_in, from inside t_out. As the
+ * march's: 1 with the root in *tc, 0 if it lies outside [t, t_hi]. */
+#define SDF_CROSSES 1
+SDF_INLINE int sdf_cross(FIELD_PARAMS, real3 o, real3 d, REAL t, REAL t_hi, REAL s, REAL lip,
+                         int *work, REAL *tc) {
+    real3 r = o - r3((REAL)POLY_CX, (REAL)POLY_CY, (REAL)POLY_CZ);
+    REAL t_in = (REAL)-1e30, t_out = (REAL)1e30;
+    for (int j = 0; j < SDF_PLANES; ++j) {
+        real3 a = r3(fd[4 * j], fd[4 * j + 1], fd[4 * j + 2]);
+        REAL ia = (REAL)1 / sqrt(dot(a, a));
+        REAL den = dot(a, d) * ia, dist = dot(a, r) * ia - fd[4 * j + 3];
+        if (den == (REAL)0) {
+            if (dist > (REAL)0) t_out = (REAL)-1e30; /* parallel, outside this face */
+        } else if (den < (REAL)0) {
+            t_in = fmax(t_in, -dist / den);
+        } else {
+            t_out = fmin(t_out, -dist / den);
+        }
+    }
+    ++*work;
+    REAL tx = s > (REAL)0 ? t_in : t_out;
+    if (!(t_in < t_out) || tx < t || tx > t_hi) return 0;
+    *tc = tx;
+    return 1;
+}
 #endif
 
 /* Hessian (xx, yy, zz, xy, xz, yz) times v. */
@@ -230,6 +258,7 @@ SDF_INLINE real3 hess_mul(const REAL *h, real3 v) {
               h[4] * v.x + h[5] * v.y + h[2] * v.z);
 }
 
+#ifndef SDF_CROSSES
 /* Where phi, seen from side s (+1 outside, -1 inside), first turns <= 0 along o + t d for t
  * in [t, t_hi]: 1 with the root in *tc, 0 if it does not, -1 past the march cap. */
 SDF_INLINE int sdf_cross(FIELD_PARAMS, real3 o, real3 d, REAL t, REAL t_hi, REAL s, REAL lip,
@@ -273,6 +302,7 @@ SDF_INLINE int sdf_cross(FIELD_PARAMS, real3 o, real3 d, REAL t, REAL t_hi, REAL
     }
     return -1;
 }
+#endif
 
 /* Distance along d to the box from outside (0 inside), or -1 when the line misses it. */
 SDF_INLINE REAL box_entry_distance(__global const REAL *restrict fp, real3 p, real3 d) {

@@ -80,6 +80,14 @@ inline REAL shape_sdf(__global const REAL *q, real3 p) {
         d = i == 0 ? di : smin(d, di, q[0]);
     }
     return d;
+#elif defined(SHAPE_FACETED)
+    /* q: NPRIM faces (unit normal, offset): the largest n . p - d */
+    REAL d = (REAL)-1e30;
+    for (int i = 0; i < NPRIM; i++) {
+        __global const REAL *c = q + 4 * i;
+        d = fmax(d, c[0] * p.x + c[1] * p.y + c[2] * p.z - c[3]);
+    }
+    return d;
 #else
 #error "snell_sdf.cl needs one SHAPE_* define"
 #endif

@@ -89,6 +89,9 @@ def _known_distances(shape):
         return [((8.0, 0, -4.0), 0.5), ((0, 0, 20.5), 0.5), ((0, 0, 0), None)]
     if shape.kind == "random":  # the first capsule passes through the origin
         return [((0, 0, 0), None)]
+    if shape.kind == "faceted":  # inside, the distance to the nearest face's plane
+        f = np.asarray(shape.faces)
+        return [((0, 0, 0), -float(f[:, 3].min())), ((0, 0, 0), None)]
     raise AssertionError(shape.kind)
 
 

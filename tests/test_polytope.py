@@ -21,15 +21,8 @@ BOX = Box()
 
 
 def prism_planes(prism: Prism, centre) -> np.ndarray:
-    """The prism's five faces as rows (unit outward normal, offset from `centre`), from its
-    own definition (three sides at the inradius, two caps at half its length)."""
-    rin = prism.side / (2 * np.sqrt(3))
-    c30 = np.sqrt(3) / 2
-    local = np.array([[0, 1, 0], [-c30, -0.5, 0], [c30, -0.5, 0], [0, 0, 1], [0, 0, -1.0]])
-    normals = local @ prism.world_to_local
-    offsets = np.array([rin] * 3 + [prism.length / 2] * 2)
-    offsets = offsets + normals @ (np.asarray(prism.center) - np.asarray(centre))
-    return np.column_stack([normals, offsets])
+    """The prism's faces (Prism.planes), checked here against its own signed distance."""
+    return prism.planes(centre)
 
 
 def rays_at(n, seed, spread=25.0):

@@ -14,15 +14,16 @@ from clrefract.table import jobs, markdown, merge, run_protocol
 
 
 def test_shards_cover_every_job_once():
-    # the paper's four methods, then the interface model as a fifth row (issue 57); the
-    # paper's own method stays the continuous hash grid
-    assert list(METHODS) == ["grid", "meridian", "synapse", "vertexnet", "interface"]
+    # the paper's four methods, then the interface model and the command line's default as
+    # rows beside them (issue 57); the paper's own method stays the continuous hash grid
+    assert list(METHODS) == ["grid", "meridian", "synapse", "vertexnet", "interface", "auto"]
+    assert METHODS["auto"].fit["field"] == "auto" and METHODS["auto"].paper is None
     assert METHODS["vertexnet"].fit["field"] == "hashgrid" and METHODS["vertexnet"].paper
     assert METHODS["interface"].fit["field"] == "interface" and METHODS["interface"].paper is None
     scenes, methods = ("sphere", "prism", "drop"), tuple(METHODS)
     parts = [jobs(scenes, methods, f"{i}/5") for i in range(5)]
     flat = [j for p in parts for j in p]
-    assert sorted(flat) == sorted(jobs(scenes, methods)) and len(flat) == 15
+    assert sorted(flat) == sorted(jobs(scenes, methods)) and len(flat) == 18
     with pytest.raises(ClrefractError):
         parse("2/2")
 

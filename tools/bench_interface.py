@@ -16,6 +16,8 @@ procedural environment by:
 - the interface: InterfaceField.from_sdf of the solid's signed distance on a res^3 grid over
   an object box (the solid's bounds plus --pad mm, as a fit's object box around its hull),
   traced by tracing.tracer_for;
+- the polytope, where the solid is one of planes (the prism): its faces exactly
+  (PolytopeInterface), traced by tracing.tracer_for;
 - the ramp on that same grid (the second peer, unless --no-levelset): a LevelSetField of the
   same phi at `width`, traced as the ramp is. It and the interface differ only in how the
   surface is crossed, while the analytic ramp's field costs a closed form a step (a fit's
@@ -299,6 +301,18 @@ def main() -> None:
                 model = dict(scene=scene, model=name, kind="levelset-ramp", grid_res=res)
                 model.update(width_mm=width, step_mm=step, setup_s=setup)
                 models.append((model, tracer, EVALS_PER_STEP[settings.integrator]))
+        if hasattr(solid, "planes"):  # flat faces: the polytope holds them exactly
+            from clrefract.fields.interface import PolytopeInterface
+
+            t0 = time.perf_counter()
+            centre = (np.asarray(box.lo) + np.asarray(box.hi)) / 2
+            field = PolytopeInterface(solid.planes(centre), solid.eta, box, centre)
+            tracer = tracer_for(
+                field, field.tracing_box(box), TraceSettings(precision=args.precision)
+            )
+            model = dict(scene=scene, model="polytope", kind="polytope", faces=field.n_planes)
+            model.update(setup_s=time.perf_counter() - t0)
+            models.append((model, tracer, None))
         scene_rows = []
         for model, tracer, per_step in models:
             model["box"] = box.to_dict()
@@ -306,12 +320,12 @@ def main() -> None:
             show(row)
             scene_rows.append(row)
         rows += scene_rows
-        for face in (r for r in scene_rows if r["kind"] == "interface"):
+        for face in (r for r in scene_rows if r["kind"] in ("interface", "polytope")):
             peers = [r for r in scene_rows if r["kind"] == "ramp"]
             peers += [
                 r
                 for r in scene_rows
-                if r["kind"] == "levelset-ramp" and r["grid_res"] == face["grid_res"]
+                if r["kind"] == "levelset-ramp" and r["grid_res"] == face.get("grid_res")
             ]
             for ramp in peers:
                 speed = ramp["s_per_image"] / face["s_per_image"]

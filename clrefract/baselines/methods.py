@@ -1,5 +1,5 @@
-"""The four methods of the paper's Table 1 by name, and clrefract's interface model as a fifth
-row beside them, each run the same way on a dataset.
+"""The four methods of the paper's Table 1 by name, and clrefract's interface model and its
+command line's default as rows beside them, each run the same way on a dataset.
 
 - grid: the paper's "Grid-based refraction": clrefract's voxel fit (same curved-ray tracer,
   same adjoint, same start from the visual hull) on a uniform 128^3 grid with trilinear
@@ -10,6 +10,8 @@ row beside them, each run the same way on a dataset.
 - interface: not the paper's: a zero-width surface (phi on a B-spline grid) with one index
   inside, rays refracted by Snell's law at each crossing (fields/interface.py), fitted at its
   kind's defaults (the descent from the visual hull). It has no figures in the paper.
+- auto: what `clrefract fit` runs without --field-kind: the interface, the polytope (flat
+  faces) and a voxel grid started, the one the held-out views prefer trained on.
 
 `settings` (a protocol's, for this method) override the method's defaults; keys that are not
 FitConfig (curved) or StraightConfig (straight) fields are ignored.
@@ -67,6 +69,7 @@ METHODS = {
         ),
         Method("vertexnet", "Vertex-Net", "curved", dict(field="hashgrid"), (31.54, 0.942, 0.74)),
         Method("interface", "Interface (SDF + Snell)", "curved", dict(field="interface"), None),
+        Method("auto", "clrefract fit's default", "curved", dict(field="auto"), None),
     )
 }
 

@@ -320,6 +320,16 @@ class Prism(Tilted, SmoothSolid):
         )
         return d[np.arange(len(d)), k], n_loc @ m
 
+    def planes(self, centre=(0.0, 0.0, 0.0)) -> np.ndarray:
+        """The five faces as rows (unit outward normal, offset from `centre`), in the world:
+        the prism as a polytope (fields/interface.py's PolytopeInterface)."""
+        rin = self.side / (2 * np.sqrt(3))
+        local = np.array([[0, 1, 0], [-_C30, -0.5, 0], [_C30, -0.5, 0], [0, 0, 1], [0, 0, -1.0]])
+        normals = local @ self.world_to_local
+        offsets = np.array([rin] * 3 + [self.length / 2] * 2)
+        offsets = offsets + normals @ (np.asarray(self.center, float) - np.asarray(centre, float))
+        return np.column_stack([normals, offsets])
+
 
 @dataclass
 class Drop(SmoothSolid):
