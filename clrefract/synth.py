@@ -2,8 +2,8 @@
 
 Solid objects (sphere, prism, drop) are rendered by exact Snell refraction at their analytic
 surfaces (clrefract.snell), the family shapes (rounded cube, cylinder, bowl, two bodies, vase,
-random solids, cut stones; clrefract.family) by exact Snell refraction at their signed-distance surfaces
-(clrefract.snell_sdf), never by the eikonal tracer that fitting uses; graded-index scenes by
+random solids, cut stones; clrefract.family) by exact Snell refraction at their signed-distance
+surfaces (clrefract.snell_sdf), never by the eikonal tracer that fitting uses; graded-index scenes by
 the eikonal tracer in float64 with a fine step:
 
 - luneburg: the Luneburg lens, radius 20 mm, index sqrt(2) at its centre;
@@ -45,8 +45,8 @@ SCENES = SOLIDS + GRADED + FAMILY
 def scene_object(name: str, eta: float | None = None, tilt=None, seed: int | None = None):
     """The analytic object of a benchmark scene (its interface width is only used to draw
     the ground-truth eta volume; the images use the sharp surface). eta and tilt choose those
-    of a family shape, seed draws the `random` and `faceted` ones and the `blobs` cluster; the other scenes
-    are fixed."""
+    of a family shape, seed draws the `random` and `faceted` ones and the `blobs` cluster;
+    the other scenes are fixed."""
     if name in FAMILY:
         return make_shape(name, eta=eta, tilt=tilt, seed=seed)
     if name in SCENES and (eta is not None or tilt is not None):
