@@ -3,8 +3,8 @@
 Solid objects (sphere, prism, drop) are rendered by exact Snell refraction at their analytic
 surfaces (clrefract.snell), the family shapes (rounded cube, cylinder, bowl, two bodies, vase,
 random solids, cut stones; clrefract.family) by exact Snell refraction at their signed-distance
-surfaces (clrefract.snell_sdf), never by the eikonal tracer that fitting uses; graded-index scenes by
-the eikonal tracer in float64 with a fine step:
+surfaces (clrefract.snell_sdf), never by the eikonal tracer that fitting uses; graded-index
+scenes by the eikonal tracer in float64 with a fine step:
 
 - luneburg: the Luneburg lens, radius 20 mm, index sqrt(2) at its centre;
 - blobs: five Gaussian blobs drawn by --seed (amplitudes 0.08-0.16, sigmas 5-8 mm, centres
