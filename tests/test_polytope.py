@@ -159,25 +159,25 @@ def test_a_polytope_file_round_trips_and_renders_the_same(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def prism_25x48(tmp_path_factory):
+def prism_25x32(tmp_path_factory):
     from clrefract.synth import MakeOptions, make_dataset
 
     root = tmp_path_factory.mktemp("prism") / "prism"
-    make_dataset("prism", root, MakeOptions(views=25, res=48, env_width=512, volume_res=16))
+    make_dataset("prism", root, MakeOptions(views=25, res=32, env_width=512, volume_res=16))
     return root
 
 
-def test_a_small_prism_fit_climbs_from_its_hull_faces(prism_25x48, tmp_path):
-    """The paper's prism in 25 views of 48 x 48 (20 to train on): the polytope's start from
+def test_a_small_prism_fit_climbs_from_its_hull_faces(prism_25x32, tmp_path):
+    """The paper's prism in 25 views of 32 x 32 (20 to train on): the polytope's start from
     the visual hull's faces, 300 Adam steps and the faces' offset search. The test views gain
-    at least 6 dB over the start (measured 26.9 -> 42.4 dB), the index lands within 0.01
-    of 1.5, and every face within 0.5 degree of the prism's."""
+    at least 6 dB over the start (measured 25.1 -> 34.5 and 37.2 dB in two runs), the index
+    lands within 0.01 of 1.5, and every face within 0.5 degree of the prism's."""
     import io
 
     from clrefract.fit import load_config, prepare_fit
 
     cfg = load_config(None, dict(field="polytope", iterations=300, seed=1))
-    fit = prepare_fit(prism_25x48, tmp_path / "run", cfg, stream=io.StringIO())
+    fit = prepare_fit(prism_25x32, tmp_path / "run", cfg, stream=io.StringIO())
     result = fit.run()
     assert result["test_psnr"] > result["start"]["test_psnr"] + 6.0, result
     assert abs(fit.field.eta - 1.5) < 0.01
