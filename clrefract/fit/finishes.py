@@ -185,7 +185,8 @@ def judge_narrowing(fit) -> dict | None:
 # each face's offset, by these steps (mm) in turn, after the polytope's Adam: a face's
 # offset moves no ray's direction, only which face a ray meets near an edge, so its gradient
 # is that of a few rays and Adam left the quick prism's faces up to 0.18 mm off
-FACE_STEPS = (0.1, 0.05, 0.02)
+FACE_STEPS = (0.2, 0.1, 0.05, 0.02)
+FACE_SWEEPS = 3  # sweeps over the faces per step, while one moves
 FACE_TRIES = (-2.0, -1.0, 1.0, 2.0)
 FACE_RAYS = 4  # times the batch: an edge is a few pixels of a view
 
@@ -206,13 +207,17 @@ def face_offsets(fit) -> dict:
 
     params, loss = before.copy(), loss_of(before)
     for step in FACE_STEPS:
-        for j in range(len(params) // 4):
-            for delta in step * np.array(FACE_TRIES):
-                trial = params.copy()
-                trial[4 * j + 3] += delta
-                t = loss_of(trial)
-                if t < loss:
-                    params, loss = trial, t
+        for _ in range(FACE_SWEEPS):
+            start = loss
+            for j in range(len(params) // 4):
+                for delta in step * np.array(FACE_TRIES):
+                    trial = params.copy()
+                    trial[4 * j + 3] += delta
+                    t = loss_of(trial)
+                    if t < loss:
+                        params, loss = trial, t
+            if loss == start:
+                break
     bound.set_params(params, fit.it)
     held = fit.held_out_loss()
     kept = held < held_before

@@ -203,7 +203,7 @@ def distil_start(fit, source) -> float:
 # the corners the cones cut: on the quick prism, keeping them (up to 30 more planes) left
 # the start at 24.8 dB against 28.5
 POLYTOPE_ANGLES = (8.0, 12.0, 18.0, 25.0, 35.0, 45.0)
-POLYTOPE_MIN_SHARES = (0.02, 0.05)
+POLYTOPE_MIN_SHARES = (0.01, 0.02, 0.05)
 # the uniform offsets (mm, all faces at once) searched with each index, then each face's
 # own offset by these steps, coarse to fine
 POLYTOPE_OFFSETS = (-6.0, -5.0, -4.0, -3.0, -2.5, -2.0, -1.5, -1.0, -0.5, 0.0, 0.5)
