@@ -39,7 +39,9 @@ class EtaModel:
         self.tracer = run_tracer(field, box, forward_settings(cfg), runtime)
         self.surface_rule = f"marching cubes of eta at {self.level:.4g} (halfway to the index)"
         if getattr(field, "surface", None) is not None:
-            self.surface_rule = "marching cubes of phi at 0 (the sharp surface)"
+            self.surface_rule = getattr(
+                field, "surface_rule", "marching cubes of phi at 0 (the sharp surface)"
+            )
 
     @property
     def level(self) -> float:

@@ -150,6 +150,7 @@ class PolytopeInterface(Field):
 
     kind = "polytope"
     traced_by = "interface"
+    surface_rule = "the faces, where the planes meet"
 
     def __init__(self, planes, eta: float, box: Box, centre=None, eta_max: float | None = None):
         self.box = box
