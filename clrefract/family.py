@@ -46,6 +46,13 @@ def _finite_vec3(v, what: str, kind: str) -> tuple[float, float, float]:
     return tuple(float(x) for x in a)
 
 
+def _check_seed(kind: str, seed) -> None:
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
+        raise ClrefractError(f"{kind}: seed must be an integer, got {seed!r}")
+    if seed < 0:
+        raise ClrefractError(f"{kind}: seed must be >= 0, got {seed}")
+
+
 def _smin(a, b, k):
     """Polynomial smooth minimum: its gradient is a convex combination of the two gradients,
     so a smooth union of 1-Lipschitz functions stays 1-Lipschitz."""
@@ -442,10 +449,7 @@ class RandomSolid(SdfSolid):
     kind = "random"
 
     def _check_params(self):
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int | np.integer):
-            raise ClrefractError(f"{self.kind}: seed must be an integer, got {self.seed!r}")
-        if self.seed < 0:
-            raise ClrefractError(f"{self.kind}: seed must be >= 0, got {self.seed}")
+        _check_seed(self.kind, self.seed)
         if not self.blend > 0:
             raise ClrefractError(f"{self.kind}: blend must be positive, got {self.blend}")
         if not self.capsules:
@@ -507,10 +511,7 @@ class Faceted(SdfSolid):
     kind = "faceted"
 
     def _check_params(self):
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int | np.integer):
-            raise ClrefractError(f"{self.kind}: seed must be an integer, got {self.seed!r}")
-        if self.seed < 0:
-            raise ClrefractError(f"{self.kind}: seed must be >= 0, got {self.seed}")
+        _check_seed(self.kind, self.seed)
         if not self.faces:
             self.faces = self._draw(int(self.seed))
         f = np.asarray(self.faces, float)

@@ -1,7 +1,7 @@
 """Where a fit step's time goes, per field kind: waiting for OpenCL, or host work between
 launches (NumPy, Python, argument set-up, the enqueue calls themselves).
 
-    python tools/bench_profile.py [--kinds voxel,levelset,hashgrid,interface] [--views 24]
+    python tools/bench_profile.py [--kinds voxel,levelset,hashgrid,interface,polytope] [--views 24]
         [--res 64] [--steps 10] [--warmup 2] [--profile-steps 3] [--threshold 20]
         [--json bench_profile.json]
 
@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_trace import print_table  # noqa: E402
 
-KINDS = ("voxel", "levelset", "hashgrid", "interface")
+KINDS = ("voxel", "levelset", "hashgrid", "interface", "polytope")
 # every pyopencl call in clrefract/ that can block the host on device work (grep of
 # clrefract/ for finish, wait and enqueue_): queue.finish(), enqueue_copy to or from the
 # host (blocking, or its event dropped), and the two ways to wait for events. All are
