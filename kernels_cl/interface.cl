@@ -15,7 +15,7 @@
  * fields/voxel.py (VOX_NX.. nodes over the box, fd[0..SDF_NODES-1] in C order, eta =
  * fd[SDF_NODES]); SDF_SPHERE, a sphere fd = (cx, cy, cz, R, eta), the closed-form oracle;
  * SDF_PLANES, a convex polyhedron of that many faces, whose crossings are found in closed form
- * (its sdf_cross replaces the march).
+ * (its sdf_cross replaces the march), or with POLY_SOFT its edges rounded (marched).
  * fp: TOL, OFFSET and MIN_STEP (clrefract/interface.py), then the box and the node counts
  * (common.h, GEO_AT 3). Needs common.h (REAL, atomic_add_real, ST_*) and snell_common.h
  * (real3, refract_or_reflect, box_exit_distance). One ray per work-item: the loops are data
@@ -172,70 +172,140 @@ SDF_INLINE void sdf_splat(FIELD_PARAMS, __global REAL *grad, real3 x, REAL af, r
 #endif
 
 #if SDF_PLANES
-/* A convex polyhedron, the intersection of SDF_PLANES half-spaces: phi = max_j n_j . (x - c)
- * - d_j, n_j = a_j / |a_j|, with fd[4j..4j+3] = (a_j, d_j) and c = (POLY_CX, POLY_CY,
- * POLY_CZ). Exact inside, a lower bound on the distance outside (a safe march at LIP 1); flat
- * faces and sharp edges, which no spline holds. */
+/* A convex polyhedron, the intersection of SDF_PLANES half-spaces, v_j = n_j . (x - c) - d_j,
+ * n_j = a_j / |a_j|, with fd[4j..4j+3] = (a_j, d_j) and c = (POLY_CX, POLY_CY, POLY_CZ).
+ * Sharp: phi = max_j v_j, exact inside, a lower bound on the distance outside (a safe march
+ * at LIP 1); flat faces and sharp edges, which no spline holds. With POLY_SOFT = k (mm):
+ * phi = k log sum_j exp(v_j / k), the same faces with edges rounded over about k, its
+ * gradient the softmax w of the normals (still 1-Lipschitz). */
 #define SDF_ETA(fd) ((fd)[4 * SDF_PLANES])
-SDF_INLINE int sdf_face(FIELD_PARAMS, real3 x, REAL *f, real3 *n) {
-    real3 r = x - r3((REAL)POLY_CX, (REAL)POLY_CY, (REAL)POLY_CZ);
-    int k = 0;
-    REAL best = (REAL)-1e30;
-    for (int j = 0; j < SDF_PLANES; ++j) {
-        real3 a = r3(fd[4 * j], fd[4 * j + 1], fd[4 * j + 2]);
-        REAL v = dot(a, r) / sqrt(dot(a, a)) - fd[4 * j + 3];
-        if (v > best) {
-            best = v;
-            k = j;
-        }
-    }
-    *n = unit3(r3(fd[4 * k], fd[4 * k + 1], fd[4 * k + 2]));
-    *f = best;
-    return k;
+
+SDF_INLINE real3 poly_r(real3 x) { return x - r3((REAL)POLY_CX, (REAL)POLY_CY, (REAL)POLY_CZ); }
+
+SDF_INLINE REAL poly_v(FIELD_PARAMS, int j, real3 r, real3 *n, REAL *ia) {
+    real3 a = r3(fd[4 * j], fd[4 * j + 1], fd[4 * j + 2]);
+    *ia = (REAL)1 / sqrt(dot(a, a));
+    *n = a * *ia;
+    return dot(*n, r) - fd[4 * j + 3];
+}
+
+/* phi at x; the largest v in *vmax and, soft, the softmax's sum S of exp((v - vmax) / k) */
+SDF_INLINE REAL poly_phi(FIELD_PARAMS, real3 r, REAL *vmax, REAL *sum) {
+    REAL m = (REAL)-1e30, ia;
+    real3 n;
+    for (int j = 0; j < SDF_PLANES; ++j) m = fmax(m, poly_v(FIELD_ARGS, j, r, &n, &ia));
+    *vmax = m;
+    *sum = (REAL)1;
+#ifdef POLY_SOFT
+    const REAL k = (REAL)POLY_SOFT;
+    REAL sm = 0;
+    for (int j = 0; j < SDF_PLANES; ++j) sm += exp((poly_v(FIELD_ARGS, j, r, &n, &ia) - m) / k);
+    *sum = sm;
+    return m + k * log(sm);
+#else
+    return m;
+#endif
+}
+
+/* the weight of face j in phi's gradient: the softmax, or 1 on the largest v */
+SDF_INLINE REAL poly_w(REAL v, REAL vmax, REAL sum) {
+#ifdef POLY_SOFT
+    return exp((v - vmax) / (REAL)POLY_SOFT) / sum;
+#else
+    return v == vmax ? (REAL)1 : (REAL)0;
+#endif
 }
 
 SDF_INLINE REAL sdf_value(FIELD_PARAMS, real3 x) {
-    REAL f;
-    real3 n;
-    sdf_face(FIELD_ARGS, x, &f, &n);
-    return f;
+    REAL m, sm;
+    return poly_phi(FIELD_ARGS, poly_r(x), &m, &sm);
 }
 
+/* g = sum_j w_j n_j; soft, H = (sum_j w_j n_j n_j^T - g g^T) / k, else 0 */
 SDF_INLINE REAL sdf_eval(FIELD_PARAMS, real3 x, real3 *g, REAL *h) {
-    REAL f;
-    sdf_face(FIELD_ARGS, x, &f, g);
+    real3 r = poly_r(x), gs = r3(0, 0, 0), n;
+    REAL m, sm, ia;
+    REAL f = poly_phi(FIELD_ARGS, r, &m, &sm);
     for (int k = 0; k < 6; ++k) h[k] = 0;
+    int taken = 0;
+    for (int j = 0; j < SDF_PLANES; ++j) {
+        REAL v = poly_v(FIELD_ARGS, j, r, &n, &ia);
+        REAL w = poly_w(v, m, sm);
+#ifndef POLY_SOFT
+        if (taken) w = 0; /* a tie: one face */
+#endif
+        if (w == (REAL)0) continue;
+        taken = 1;
+        gs += w * n;
+        h[0] += w * n.x * n.x;
+        h[1] += w * n.y * n.y;
+        h[2] += w * n.z * n.z;
+        h[3] += w * n.x * n.y;
+        h[4] += w * n.x * n.z;
+        h[5] += w * n.y * n.z;
+    }
+#ifdef POLY_SOFT
+    const REAL ik = (REAL)1 / (REAL)POLY_SOFT;
+    h[0] = (h[0] - gs.x * gs.x) * ik;
+    h[1] = (h[1] - gs.y * gs.y) * ik;
+    h[2] = (h[2] - gs.z * gs.z) * ik;
+    h[3] = (h[3] - gs.x * gs.y) * ik;
+    h[4] = (h[4] - gs.x * gs.z) * ik;
+    h[5] = (h[5] - gs.y * gs.z) * ik;
+#else
+    for (int k = 0; k < 6; ++k) h[k] = 0;
+#endif
+    *g = gs;
     return f;
 }
 
-/* The face k that holds x: dphi/da = P (x - c) / |a|, dphi/dd = -1, d grad/da = P / |a|,
- * P = I - n n^T. */
+/* Face j, weight w: dphi/dv_j = w_j; ag . dg/dv_j = c_j = w_j (n_j - g) . ag / k (soft);
+ * dv_j/da_j = P_j r / |a_j|, dv_j/dd_j = -1, ag . d(w_j n_j)/da_j = w_j P_j ag / |a_j|,
+ * P_j = I - n_j n_j^T. */
 SDF_INLINE void sdf_splat(FIELD_PARAMS, __global REAL *grad, real3 x, REAL af, real3 ag) {
-    REAL f;
-    real3 n;
-    int k = sdf_face(FIELD_ARGS, x, &f, &n);
-    real3 a = r3(fd[4 * k], fd[4 * k + 1], fd[4 * k + 2]);
-    real3 r = x - r3((REAL)POLY_CX, (REAL)POLY_CY, (REAL)POLY_CZ);
-    real3 v = af * r + ag;
-    real3 ga = (v - n * dot(n, v)) / sqrt(dot(a, a));
-    atomic_add_real(grad + 4 * k, ga.x);
-    atomic_add_real(grad + 4 * k + 1, ga.y);
-    atomic_add_real(grad + 4 * k + 2, ga.z);
-    atomic_add_real(grad + 4 * k + 3, -af);
+    real3 r = poly_r(x), n, g = r3(0, 0, 0);
+    REAL m, sm, ia;
+    poly_phi(FIELD_ARGS, r, &m, &sm);
+#ifdef POLY_SOFT
+    for (int j = 0; j < SDF_PLANES; ++j) {
+        REAL v = poly_v(FIELD_ARGS, j, r, &n, &ia);
+        g += poly_w(v, m, sm) * n;
+    }
+#endif
+    int taken = 0;
+    for (int j = 0; j < SDF_PLANES; ++j) {
+        REAL v = poly_v(FIELD_ARGS, j, r, &n, &ia);
+        REAL w = poly_w(v, m, sm);
+#ifndef POLY_SOFT
+        if (taken) w = 0;
+#endif
+        if (w == (REAL)0) continue;
+        taken = 1;
+#ifdef POLY_SOFT
+        REAL dv = af * w + w * dot(n - g, ag) / (REAL)POLY_SOFT;
+#else
+        REAL dv = af * w;
+#endif
+        real3 u = dv * r + w * ag;
+        real3 ga = (u - n * dot(n, u)) * ia;
+        atomic_add_real(grad + 4 * j, ga.x);
+        atomic_add_real(grad + 4 * j + 1, ga.y);
+        atomic_add_real(grad + 4 * j + 2, ga.z);
+        atomic_add_real(grad + 4 * j + 3, -dv);
+    }
 }
 
+#ifndef POLY_SOFT
 /* The crossing in closed form: a line meets a convex solid on one interval (t_in, t_out),
  * clipped plane by plane; from outside the crossing is t_in, from inside t_out. As the
  * march's: 1 with the root in *tc, 0 if it lies outside [t, t_hi]. */
 #define SDF_CROSSES 1
 SDF_INLINE int sdf_cross(FIELD_PARAMS, real3 o, real3 d, REAL t, REAL t_hi, REAL s, REAL lip,
                          int *work, REAL *tc) {
-    real3 r = o - r3((REAL)POLY_CX, (REAL)POLY_CY, (REAL)POLY_CZ);
-    REAL t_in = (REAL)-1e30, t_out = (REAL)1e30;
+    real3 r = poly_r(o), n;
+    REAL t_in = (REAL)-1e30, t_out = (REAL)1e30, ia;
     for (int j = 0; j < SDF_PLANES; ++j) {
-        real3 a = r3(fd[4 * j], fd[4 * j + 1], fd[4 * j + 2]);
-        REAL ia = (REAL)1 / sqrt(dot(a, a));
-        REAL den = dot(a, d) * ia, dist = dot(a, r) * ia - fd[4 * j + 3];
+        REAL dist = poly_v(FIELD_ARGS, j, r, &n, &ia), den = dot(n, d);
         if (den == (REAL)0) {
             if (dist > (REAL)0) t_out = (REAL)-1e30; /* parallel, outside this face */
         } else if (den < (REAL)0) {
@@ -250,6 +320,7 @@ SDF_INLINE int sdf_cross(FIELD_PARAMS, real3 o, real3 d, REAL t, REAL t_hi, REAL
     *tc = tx;
     return 1;
 }
+#endif
 #endif
 
 /* Hessian (xx, yy, zz, xy, xz, yz) times v. */

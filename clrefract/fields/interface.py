@@ -22,6 +22,23 @@ from .levelset import LevelSetField
 from .voxel import grid_defines
 
 
+def zero_set(sdf, b: Box, res: int):
+    """Marching cubes of sdf(pts)[0] at 0 on a res^3 grid over box b: (vertices, faces), or
+    None where it has no zero set there."""
+    from skimage.measure import marching_cubes
+
+    axes = [np.linspace(b.lo[k], b.hi[k], res) for k in range(3)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    vol = np.concatenate([sdf(pts[a : a + 262144])[0] for a in range(0, len(pts), 262144)]).reshape(
+        (res,) * 3
+    )
+    if not vol.min() < 0 < vol.max():
+        return None
+    spacing = tuple((b.hi[k] - b.lo[k]) / (res - 1) for k in range(3))
+    verts, faces, _, _ = marching_cubes(vol, 0.0, spacing=spacing)
+    return verts + np.asarray(b.lo), faces
+
+
 def sharp_eta(phi: np.ndarray, eta: float) -> tuple[np.ndarray, np.ndarray]:
     """eta of a solid with a zero-width surface at points of signed distance phi (the
     gradient is zero almost everywhere)."""
@@ -57,19 +74,7 @@ class InterfaceField(LevelSetField):
     def surface(self, box: Box | None = None, res: int = 128):
         """The zero set of phi as a mesh (vertices, faces): marching cubes on a res^3 grid
         over the field's box, where phi is defined (`box` is not used); None if empty."""
-        from skimage.measure import marching_cubes
-
-        b = self.box
-        axes = [np.linspace(b.lo[k], b.hi[k], res) for k in range(3)]
-        pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-        vol = np.concatenate(
-            [self.sdf(pts[a : a + 262144])[0] for a in range(0, len(pts), 262144)]
-        ).reshape((res,) * 3)
-        if not vol.min() < 0 < vol.max():
-            return None
-        spacing = tuple((b.hi[k] - b.lo[k]) / (res - 1) for k in range(3))
-        verts, faces, _, _ = marching_cubes(vol, 0.0, spacing=spacing)
-        return verts + np.asarray(b.lo), faces
+        return zero_set(self.sdf, self.box, res)
 
     @classmethod
     def from_levelset(cls, ls: LevelSetField) -> InterfaceField:
@@ -146,14 +151,31 @@ class PolytopeInterface(Field):
     """A convex solid of index `eta` bounded by planes: phi(x) = max_j n_j . (x - centre) -
     d_j, with n_j = a_j / |a_j| (`planes`: rows (a_j, d_j), mm). Flat faces and sharp edges
     held exactly, which a spline of any node count smooths; sharp glass of a few faces (a
-    prism, a cube, a cut stone) is a few dozen parameters."""
+    prism, a cube, a cut stone) is a few dozen parameters. With `rounding` k > 0 (mm), the
+    max becomes k log sum_j exp(v_j / k): the same faces, edges rounded over about k."""
 
     kind = "polytope"
     traced_by = "interface"
-    surface_rule = "the faces, where the planes meet"
 
-    def __init__(self, planes, eta: float, box: Box, centre=None, eta_max: float | None = None):
+    @property
+    def surface_rule(self) -> str:
+        if self.rounding > 0:
+            return "marching cubes of phi at 0 (the rounded faces)"
+        return "the faces, where the planes meet"
+
+    def __init__(
+        self,
+        planes,
+        eta: float,
+        box: Box,
+        centre=None,
+        eta_max: float | None = None,
+        rounding: float = 0.0,
+    ):
         self.box = box
+        if not (np.isfinite(rounding) and rounding >= 0):
+            raise ClrefractError(f"a polytope's rounding must be >= 0 mm, got {rounding!r}")
+        self.rounding = float(rounding)
         self.centre = np.asarray(
             (np.asarray(box.lo) + np.asarray(box.hi)) / 2 if centre is None else centre, np.float64
         )
@@ -193,11 +215,13 @@ class PolytopeInterface(Field):
 
     def defines(self) -> dict:
         c = self.centre
+        soft = {"POLY_SOFT": repr(self.rounding)} if self.rounding > 0 else {}
         return {
             "SDF_PLANES": self.n_planes,
             "POLY_CX": repr(float(c[0])),
             "POLY_CY": repr(float(c[1])),
             "POLY_CZ": repr(float(c[2])),
+            **soft,
         }
 
     @property
@@ -223,6 +247,12 @@ class PolytopeInterface(Field):
     def sdf(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n = self.normals()
         v = (np.asarray(pts, np.float64) - self.centre) @ n.T - self.planes[:, 3]
+        if self.rounding > 0:
+            k = self.rounding
+            m = v.max(axis=1, keepdims=True)
+            e = np.exp((v - m) / k)
+            s = e.sum(axis=1, keepdims=True)
+            return (m + k * np.log(s))[:, 0], (e / s) @ n
         k = np.argmax(v, axis=1)
         return v[np.arange(len(v)), k], n[k]
 
@@ -240,9 +270,12 @@ class PolytopeInterface(Field):
 
     def surface(self, box: Box | None = None, res: int = 128):
         """The faces as a triangle mesh (vertices, faces), from the planes' intersection
-        (scipy's HalfspaceIntersection about the centre); None if the solid is empty."""
+        (scipy's HalfspaceIntersection about the centre); None if the solid is empty. Rounded,
+        marching cubes of phi on a res^3 grid over the field's box."""
         from scipy.spatial import ConvexHull, HalfspaceIntersection
 
+        if self.rounding > 0:
+            return zero_set(self.sdf, self.box, res)
         n = self.normals()
         halfspaces = np.column_stack([n, -self.planes[:, 3]])  # n . r - d <= 0
         try:
@@ -279,6 +312,7 @@ class PolytopeInterface(Field):
                 planes=self.planes,
                 eta=self.eta,
                 centre=self.centre,
+                rounding=self.rounding,
                 lo=np.asarray(self.box.lo),
                 hi=np.asarray(self.box.hi),
                 margin=self.box.margin,
@@ -294,7 +328,8 @@ class PolytopeInterface(Field):
                 raise ClrefractError(f"{path}: not a polytope file (missing {', '.join(missing)})")
             box = Box(tuple(z["lo"].tolist()), tuple(z["hi"].tolist()), float(z["margin"]))
             try:
-                return cls(z["planes"], float(z["eta"]), box, centre=z["centre"])
+                rounding = float(z["rounding"]) if "rounding" in z.files else 0.0
+                return cls(z["planes"], float(z["eta"]), box, z["centre"], rounding=rounding)
             except ClrefractError as exc:
                 raise ClrefractError(f"{path}: {exc}") from None
 
@@ -303,6 +338,7 @@ class PolytopeInterface(Field):
             "kind": self.kind,
             "planes": self.planes.tolist(),
             "eta": self.eta,
+            "rounding": self.rounding,
             "centre": self.centre.tolist(),
             "box": self.box.to_dict(),
         }

@@ -58,6 +58,9 @@ class FitConfig:
     # sigmoid is saturated and keeps eta flat (noise in grad eta there bends every ray
     # crossing it); a ramp's eta_max is the index itself, flat past the ramp's top
     index_headroom: float = 0.0025
+    # polytope: its edges rounded over this many mm (a softened max over the faces); -1: the
+    # start searches it (kinds.POLYTOPE_ROUNDINGS) and records what it chose
+    rounding: float = -1.0
     # fitting the hash grid to the level-set start: the true sphere renders at 30.99 dB after
     # 1000 steps, 31.71 after 2000 (the level set itself: 31.86)
     distil_iterations: int = 2000
@@ -210,6 +213,10 @@ class FitConfig:
                 )
         if not (self.step >= 0 and math.isfinite(self.step)):
             raise ClrefractError(f"step must be positive (or 0: automatic), got {self.step}")
+        if not (math.isfinite(self.rounding) and (self.rounding >= 0 or self.rounding == -1)):
+            raise ClrefractError(
+                f"rounding must be at least 0 mm (or -1: searched), got {self.rounding}"
+            )
         if not (self.lr_max >= 0 and math.isfinite(self.lr_max)):
             raise ClrefractError(f"lr_max must be at least 0, got {self.lr_max}")
         for name in ("descent_sigma", "descent_sigma_final"):
@@ -308,6 +315,8 @@ HELP = {
     "output": "how the hash grid's MLP output becomes eta: ramp (a level set's C2 ramp, an "
     "interface) or sigmoid (smooth everywhere, for a start from empty space) (default: ramp "
     "from the hull, sigmoid from empty space)",
+    "rounding": "polytope: mm over which its edges are rounded (a softened max over its faces); "
+    "-1: searched by the start",
     "index_headroom": "a sigmoid hash grid from the hull starts with eta_max this far above "
     "the start's index, in units of index - 1",
     "distil_iterations": "steps fitting the hash grid to its level-set start",

@@ -494,6 +494,9 @@ class InterfaceKind(LevelSetKind):
                 np.maximum(phi[tuple(sl)], 1e-3, out=phi[tuple(sl)])
 
 
+# the edge roundings (mm) a polytope's start tries once its faces are placed, the loss
+# choosing: a real glass cube or prism has its edges bevelled or polished round
+POLYTOPE_ROUNDINGS = (0.0, 0.5, 1.0, 2.0, 3.0, 4.0)
 # a convex solid of flat faces by Adam on its planes and index, from the hull's faces
 # (starts.PolytopeHullStart): the quick prism from 32.0 to 41.5 dB in 600 steps, its rates
 # decaying to 0.05 (from the true prism, undecayed rates of 0.02 mm left it at 36 dB)
@@ -547,10 +550,13 @@ class PolytopeKind(FieldKind):
         far = float(np.linalg.norm(box.size))
         return self.make_planes(cfg, box, eta_max, np.column_stack([n, np.full(len(n), far)]))
 
-    def make_planes(self, cfg, box, eta_max, planes, eta: float = 1.0):
+    def make_planes(self, cfg, box, eta_max, planes, eta: float = 1.0, rounding=None):
+        """A polytope of these planes, its edges rounded as `rounding` says (None: as the
+        configuration does, sharp while the start has yet to choose)."""
         from ..fields.interface import PolytopeInterface
 
-        return PolytopeInterface(planes, eta, box, eta_max=eta_max)
+        rounding = max(cfg.rounding, 0.0) if rounding is None else rounding
+        return PolytopeInterface(planes, eta, box, eta_max=eta_max, rounding=rounding)
 
     adam_finish = "face-offsets"
 
