@@ -221,86 +221,27 @@ class NoFaces(NoObject):
 
 class PolytopeHullStart:
     """A convex solid of flat faces: the planes of the visual hull's faces (facets.py) for
-    each merge angle, with the index and offset of lowest loss, then each face's offset by
-    line searches."""
+    each merge angle and share, with the index and a common offset of lowest loss; then
+    each face's offset, the index, and the rounding of the edges by line searches."""
 
     def run(self, fit, res: int) -> None:
-        from ..facets import bounded, hull_surface, merged_planes
-
         hull = fit.hulls.at(fit.box, 64)
         if not hull.found:
             raise NoObject(f"{fit.ds.root}: the refraction masks do not agree on an object")
-        centre = (np.asarray(fit.box.lo) + np.asarray(fit.box.hi)) / 2
-        points = hull_surface(hull.distance, fit.box)
-        idx = fit.rays.mask_batch(Tag.START)
-        coarse = idx[: coarse_rays(len(idx))]
-        etas = np.linspace(1.0, fit.ds.scene.eta_range[1], 9)[1:]
-        best = (np.inf, None, 1.0, 0.0, 0.0)
-        faces, seen = [], set()
-        for angle in POLYTOPE_ANGLES:
-            for share in POLYTOPE_MIN_SHARES:
-                planes = merged_planes(points, centre, angle, share)
-                key = planes.round(6).tobytes()
-                if bounded(planes) and key not in seen:
-                    seen.add(key)
-                    faces.append((angle, planes))
-        bar = Progress(
-            len(faces) * len(etas) * len(POLYTOPE_OFFSETS),
-            "start",
-            unit="losses",
-            stream=fit.stream,
-        )
-        for angle, planes in faces:
-            fit.bind(fit.kind.make_planes(fit.cfg, fit.box, fit.eta_max, planes))
-            for e in etas:
-                for o in POLYTOPE_OFFSETS:
-                    loss = _polytope_loss(fit, coarse, planes, e, o)
-                    bar.update(best=min(best[0], loss))
-                    if loss < best[0]:
-                        best = (loss, planes, float(e), float(o), angle)
-        bar.close()
-        _, planes, eta, offset, angle = best
-        if planes is None:
-            raise NoFaces(
-                f"{fit.ds.root}: the visual hull's faces close no convex solid; fit it with "
-                "--field interface"
-            )
+        self.fit = fit
+        self.idx = fit.rays.mask_batch(Tag.START)
+        self.etas = np.linspace(1.0, fit.ds.scene.eta_range[1], 9)[1:]
+        loss, planes, eta, offset, angle = self._coarse(self._candidates(hull))
         planes = planes.copy()
         planes[:, 3] += offset
-        fit.bind(fit.kind.make_planes(fit.cfg, fit.box, fit.eta_max, planes))
-        loss = _polytope_loss(fit, idx, planes, eta, 0.0)
-        for step in POLYTOPE_FACE_STEPS:  # each face's own offset
-            for j in range(len(planes)):
-                for delta in step * np.array(LINE_TRIES):
-                    trial = planes.copy()
-                    trial[j, 3] += delta
-                    t = _polytope_loss(fit, idx, trial, eta, 0.0)
-                    if t < loss:
-                        loss, planes = t, trial
-        for e in eta + (etas[1] - etas[0]) * np.linspace(-0.75, 0.75, VOXEL_FINE):
-            if e > 1:
-                t = _polytope_loss(fit, idx, planes, float(e), 0.0)
-                if t < loss:
-                    loss, eta = t, float(e)
+        self._bind(planes)
+        loss, planes, eta = self._refined(planes, eta)
         rounding = fit.cfg.rounding
         if rounding < 0:  # searched: bevelled and polished edges
-            # sharp faces stand in for rounded edges by moving in with a lower index: each
-            # rounding is tried with the faces moved back out and the index raised
-            rounding, shift, step = 0.0, 0.0, etas[1] - etas[0]
-            for k in POLYTOPE_ROUNDINGS[1:]:
-                fit.bind(fit.kind.make_planes(fit.cfg, fit.box, fit.eta_max, planes, rounding=k))
-                for o in ROUNDING_SHIFTS:
-                    for e in eta + step * np.array(ROUNDING_INDEX_STEPS):
-                        t = _polytope_loss(fit, idx, planes, float(e), o)
-                        if t < loss:
-                            loss, rounding, shift, best_eta = t, k, o, float(e)
-            if rounding > 0:
-                planes[:, 3] += shift
-                eta = best_eta
+            loss, planes, eta, rounding = self._rounded(loss, planes, eta)
             fit.cfg.rounding = rounding  # recorded in config.toml: resume, render, eval
-        fit.bind(fit.kind.make_planes(fit.cfg, fit.box, fit.eta_max, planes))
-        params = np.append(planes.ravel(), eta)
-        fit.bound.set_params(params, fit.it)
+        self._bind(planes)
+        fit.bound.set_params(np.append(planes.ravel(), eta), fit.it)
         fit.init_info = {
             "eta": eta,
             "rounding_mm": rounding,
@@ -316,13 +257,97 @@ class PolytopeHullStart:
         )
         fit.out.write_json("init.json", fit.init_info)
 
+    def _bind(self, planes, rounding=None) -> None:
+        fit = self.fit
+        fit.bind(fit.kind.make_planes(fit.cfg, fit.box, fit.eta_max, planes, rounding=rounding))
 
-def _polytope_loss(fit, idx, planes, eta: float, offset: float) -> float:
-    """The loss of rays idx through the bound polytope with these planes moved by offset."""
-    p = planes.copy()
-    p[:, 3] += offset
-    fit.bound.set_params(np.append(p.ravel(), eta), fit.it)
-    return fit.objective.loss(fit.bound.tracer, idx)
+    def _loss(self, idx, planes, eta: float, offset: float = 0.0) -> float:
+        """The loss of rays idx through the bound polytope, its planes moved by offset."""
+        p = planes.copy()
+        p[:, 3] += offset
+        self.fit.bound.set_params(np.append(p.ravel(), eta), self.fit.it)
+        return self.fit.objective.loss(self.fit.bound.tracer, idx)
+
+    def _candidates(self, hull) -> list:
+        """(merge angle, planes) of each distinct face set that closes a solid."""
+        from ..facets import bounded, hull_surface, merged_planes
+
+        fit = self.fit
+        centre = (np.asarray(fit.box.lo) + np.asarray(fit.box.hi)) / 2
+        points = hull_surface(hull.distance, fit.box)
+        faces, seen = [], set()
+        for angle in POLYTOPE_ANGLES:
+            for share in POLYTOPE_MIN_SHARES:
+                planes = merged_planes(points, centre, angle, share)
+                key = planes.round(6).tobytes()
+                if bounded(planes) and key not in seen:
+                    seen.add(key)
+                    faces.append((angle, planes))
+        return faces
+
+    def _coarse(self, faces) -> tuple:
+        """(loss, planes, index, offset, angle): each face set with each coarse index and
+        common offset, on the coarse share of the rays."""
+        fit = self.fit
+        coarse = self.idx[: coarse_rays(len(self.idx))]
+        best = (np.inf, None, 1.0, 0.0, 0.0)
+        bar = Progress(
+            len(faces) * len(self.etas) * len(POLYTOPE_OFFSETS),
+            "start",
+            unit="losses",
+            stream=fit.stream,
+        )
+        for angle, planes in faces:
+            self._bind(planes)
+            for e in self.etas:
+                for o in POLYTOPE_OFFSETS:
+                    loss = self._loss(coarse, planes, float(e), o)
+                    bar.update(best=min(best[0], loss))
+                    if loss < best[0]:
+                        best = (loss, planes, float(e), float(o), angle)
+        bar.close()
+        if best[1] is None:
+            raise NoFaces(
+                f"{fit.ds.root}: the visual hull's faces close no convex solid; fit it with "
+                "--field interface"
+            )
+        return best
+
+    def _refined(self, planes, eta: float) -> tuple:
+        """(loss, planes, index): each face's own offset, then a finer index."""
+        loss = self._loss(self.idx, planes, eta)
+        for step in POLYTOPE_FACE_STEPS:
+            for j in range(len(planes)):
+                for delta in step * np.array(LINE_TRIES):
+                    trial = planes.copy()
+                    trial[j, 3] += delta
+                    t = self._loss(self.idx, trial, eta)
+                    if t < loss:
+                        loss, planes = t, trial
+        step = self.etas[1] - self.etas[0]
+        for e in eta + step * np.linspace(-0.75, 0.75, VOXEL_FINE):
+            if e > 1:
+                t = self._loss(self.idx, planes, float(e))
+                if t < loss:
+                    loss, eta = t, float(e)
+        return loss, planes, eta
+
+    def _rounded(self, loss: float, planes, eta: float) -> tuple:
+        """(loss, planes, index, rounding): each rounding with the faces moved back out and
+        the index raised (sharp faces stand in for rounded edges by moving in with a lower
+        index), or the sharp faces as they were."""
+        best = (loss, planes, eta, 0.0)
+        step = self.etas[1] - self.etas[0]
+        for k in POLYTOPE_ROUNDINGS[1:]:
+            self._bind(planes, rounding=k)
+            for o in ROUNDING_SHIFTS:
+                for e in eta + step * np.array(ROUNDING_INDEX_STEPS):
+                    t = self._loss(self.idx, planes, float(e), o)
+                    if t < best[0]:
+                        moved = planes.copy()
+                        moved[:, 3] += o
+                        best = (t, moved, float(e), k)
+        return best
 
 
 STARTS = {
