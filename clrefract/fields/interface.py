@@ -144,6 +144,7 @@ class SphereInterface(Field):
 
 # a plane's normal turns (radians) as far as its face moves (mm) at this distance from the
 # centre: on the quick prism, Adam at 0.02 mm and 0.002 rad took the start from 32.0 to 41.5 dB
+# (the fit's rate: kinds.POLYTOPE_DEFAULTS)
 NORMAL_ARM = 10.0
 
 
