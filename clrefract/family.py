@@ -46,6 +46,19 @@ def _finite_vec3(v, what: str, kind: str) -> tuple[float, float, float]:
     return tuple(float(x) for x in a)
 
 
+def corner_radius(faces: np.ndarray) -> float:
+    """The largest distance from the origin of a corner of the solid n . p <= d (rows (n, d)
+    of `faces`; inf where they close no solid about the origin)."""
+    from scipy.spatial import HalfspaceIntersection
+
+    try:
+        hs = HalfspaceIntersection(np.column_stack([faces[:, :3], -faces[:, 3]]), np.zeros(3))
+    except Exception:  # noqa: BLE001 - an unbounded or degenerate intersection
+        return math.inf
+    pts = hs.intersections
+    return float(np.linalg.norm(pts, axis=1).max()) if np.all(np.isfinite(pts)) else math.inf
+
+
 def _check_seed(kind: str, seed) -> None:
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
         raise ClrefractError(f"{kind}: seed must be an integer, got {seed!r}")
@@ -532,23 +545,11 @@ class Faceted(SdfSolid):
             n = rng.normal(size=(k, 3))
             n /= np.linalg.norm(n, axis=1, keepdims=True)
             faces = np.column_stack([n, rng.uniform(9.0, 15.0, k)])
-            if Faceted._corners(faces) <= 30.0:
+            if corner_radius(faces) <= 30.0:
                 return faces.tolist()
 
-    @staticmethod
-    def _corners(faces: np.ndarray) -> float:
-        """The largest distance of a corner from the origin (inf: the faces close no solid)."""
-        from scipy.spatial import HalfspaceIntersection
-
-        try:
-            hs = HalfspaceIntersection(np.column_stack([faces[:, :3], -faces[:, 3]]), np.zeros(3))
-        except Exception:  # noqa: BLE001 - an unbounded or degenerate intersection
-            return math.inf
-        pts = hs.intersections
-        return float(np.linalg.norm(pts, axis=1).max()) if np.all(np.isfinite(pts)) else math.inf
-
     def _corner_radius(self) -> float:
-        return self._corners(np.asarray(self.faces, float))
+        return corner_radius(np.asarray(self.faces, float))
 
     def local_distance(self, p):
         f = np.asarray(self.faces, float)
