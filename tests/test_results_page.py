@@ -125,13 +125,14 @@ def test_docs_results_is_the_page_of_its_saved_records():
     commands = [a for _, a in clrefract_commands(PAGE.read_text())]
     protocol = records[0]["protocol"]
     measure = ["table", "run", "--protocol", protocol, "--out", f"table/{protocol}"]
-    measure += ["--family-methods", "interface", "--page", "docs/results.md"]
+    measure += ["--family-methods", "interface,auto", "--page", "docs/results.md"]
     assert [*measure, "--readme", "README.md"] in commands
     again = ["table", "page", "docs/results.json", "--out", "docs/results.md"]
     assert [*again, "--readme", "README.md"] in commands
     assert all(_parse(a) == "" for a in commands)
     names = {(r["scene"], r["method"]) for r in records}
-    assert names == {(s, m) for s in SCENES for m in METHODS} | {(s, "interface") for s in FAMILY}
+    family = {(s, m) for s in FAMILY for m in ("interface", "auto")}
+    assert names == {(s, m) for s in SCENES for m in METHODS} | family
     # the README's results at a glance are this page's
     block = README.read_text().split(GLANCE_BEGIN + "\n")[1].split(GLANCE_END)[0]
     assert block == glance(records, "docs/results.md"), (
