@@ -287,7 +287,7 @@ class PolytopeInterface(Field):
         return hull.points + self.centre, hull.simplices
 
     # --- fitting ----------------------------------------------------------------------------
-    def param_groups(self, lr_phi: float = 0.02, lr_index: float = 1e-3, **_) -> list:
+    def param_groups(self, lr_phi: float = 0.01, lr_index: float = 1e-3, **_) -> list:
         """The planes' offsets move lr_phi mm a step and their normals as far at
         NORMAL_ARM mm from the centre; the index lr_index."""
         from ..adam import ParamGroup

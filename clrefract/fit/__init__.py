@@ -2,14 +2,14 @@
 
 The parts, in the order their imports flow:
     config       FitConfig and its TOML
-    kinds        one adapter per field kind (voxel, levelset, hashgrid)
+    kinds        one adapter per field kind (voxel, levelset, hashgrid, interface, polytope)
     configure    load_config: defaults, file, flags; the kind's and optimiser's checks
     runfolder    the run folder's files, written atomically
     rays         training rays, the held-out split, batches (with their tags), blur
     objective    the loss, its gradient, the held-out loss
     binding      a field bound to its engine and parameters
     distil       a hash grid fitted to another field
-    starts       empty, the hull (voxel, level set), distilled (hash grid)
+    starts       empty, the hull (voxel, level set, polytope), distilled (hash grid)
     linesearch   a level set's line-search step
     finishes     the size and index search, a narrowed run's judgement
     optimizers   Adam, the line search, the guided line search

@@ -1,6 +1,7 @@
-"""One adapter per field kind: what a fit does differently for a voxel grid, a level set and
-a hash grid. The rest of the fit asks its adapter (`kind_of(cfg)`) and never the kind's
-name, as the tracer asks a field for its kernel sources.
+"""One adapter per field kind: what a fit does differently for a voxel grid, a level set, a
+hash grid, a sharp interface and a polytope. The rest of the fit asks its adapter
+(`kind_of(cfg)`) and never the kind's name, as the tracer asks a field for its kernel
+sources.
 """
 
 from __future__ import annotations
