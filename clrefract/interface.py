@@ -164,9 +164,10 @@ class InterfaceTracer:
         return outs[0].astype(np.float64), np.stack(outs[1:], axis=1).astype(np.float64)
 
     def eval_field(self, pts) -> tuple[np.ndarray, np.ndarray]:
-        """eta (n,) and its gradient (zero off the surface), from the device's phi."""
-        phi = self.eval_sdf(pts)[0]
-        return np.where(phi < 0, self.field.eta, 1.0), np.zeros((len(phi), 3))
+        """eta (n,) and its gradient, inside by the device's phi."""
+        inside = self.eval_sdf(pts)[0] < 0
+        eta, grad = self.field.index(np.asarray(pts, np.float64))
+        return np.where(inside, eta, 1.0), np.where(inside[:, None], grad, 0.0)
 
 
 class InterfaceEngine:
@@ -201,8 +202,9 @@ class InterfaceEngine:
         self.tracer.upload_field()
 
     def state_bytes_per_ray(self) -> int:
-        """Bytes a ray's backward pass keeps: each event's point, direction and side."""
-        return MAX_EVENTS * (6 * np.dtype(self.tracer.dtype).itemsize + 4)
+        """Bytes a ray's backward pass keeps: each event's point, directions in and out, side,
+        and the curved segment's step count and last step."""
+        return MAX_EVENTS * (10 * np.dtype(self.tracer.dtype).itemsize + 8)
 
     def loss_and_grad(
         self, origins, dirs, targets, env, weights=None, group: int = 1, terminal=None
@@ -217,13 +219,14 @@ class InterfaceEngine:
         else:
             loss, mu, rad = terminal(t.status, t.direction)
         n_par = len(self.field.data())
+        n_int = int(getattr(self.field, "n_shared", 1))  # the index's terms (fields/interior.py)
         rays = np.flatnonzero((t.status == Status.EXITED) & mu.any(axis=1))
         grads = []
         for q, idx in zip(self.queues, np.array_split(rays, len(self.queues))):
             if not len(idx):
                 continue
             grad = np.zeros(n_par + 1, tr.dtype)
-            geta = np.empty(len(idx), tr.dtype)
+            geta = np.empty(len(idx) * n_int, tr.dtype)
             cl = tr.runtime.cl
             gbuf = cl.Buffer(
                 tr.runtime.context,
@@ -244,7 +247,8 @@ class InterfaceEngine:
         for launch, grad, geta in grads:
             launch.finish()
             total += grad[:n_par]
-            total[self.field.shared_offset] += geta.astype(np.float64).sum()
+            off = self.field.shared_offset
+            total[off : off + n_int] += geta.reshape(-1, n_int).astype(np.float64).sum(0)
         if not np.isfinite(loss) or not np.all(np.isfinite(total)):
             raise FloatingPointError("non-finite loss or gradient")
         n = len(origins)
@@ -265,9 +269,53 @@ def refract(d, n, inside: bool, eta: float):
     return out / np.linalg.norm(out)
 
 
-def interface_numpy(field, box: Box, origins, dirs, samples: float = 0.1):
+def first_crossing(phi, p, d, start: float, t_hi: float, inside: bool, ds: float):
+    """Where phi (seen from `inside`) first turns <= 0 along p + t d, t in [start, t_hi]: by
+    sampling every ds and bisecting; None if it does not."""
+    ts = np.arange(start, t_hi + ds, ds)
+    ts[-1] = min(ts[-1], t_hi)
+    side = -1 if inside else 1
+    f = phi(p + ts[:, None] * d) * side
+    neg = np.flatnonzero(f <= 0)
+    if not len(neg):
+        return None
+    j = neg[0]
+    a, b = (ts[j - 1], ts[j]) if j else (ts[0], ts[0])
+    for _ in range(80):
+        mid = 0.5 * (a + b)
+        if phi((p + mid * d)[None])[0] * side > 0:
+            a = mid
+        else:
+            b = mid
+    return p + 0.5 * (a + b) * d
+
+
+def curved_crossing(field, x, d):
+    """From x inside along unit d, the eikonal ray x' = v, v' = eta grad eta in the field's
+    graded interior (SciPy's DOP853 at rtol 1e-12) to where phi turns 0: (point, direction)."""
+    from scipy.integrate import solve_ivp
+
+    def rate(_, y):
+        eta, g = field.index(y[None, :3])
+        return np.concatenate([y[3:], eta[0] * g[0]])
+
+    def out(_, y):
+        return field.sdf(y[None, :3])[0][0]
+
+    out.terminal, out.direction = True, 1
+    y0 = np.concatenate([x, field.index(x[None])[0][0] * d])
+    span = 10 * float(np.linalg.norm(field.box.size))
+    sol = solve_ivp(rate, (0, span), y0, "DOP853", events=out, rtol=1e-12, atol=1e-12)
+    if not sol.t_events[0].size:
+        return None
+    y = sol.y_events[0][0]
+    return y[:3], y[3:] / np.linalg.norm(y[3:])
+
+
+def interface_numpy(field, box: Box, origins, dirs, samples: float = 0.1, curved=False):
     """Per-ray float64 reference: (status, exit direction, events). Crossings are found by
-    sampling phi every `samples` of the field's min_step and bisecting the first sign change."""
+    sampling phi every `samples` of the field's min_step and bisecting the first sign change;
+    with `curved`, rays inside follow the graded interior (curved_crossing)."""
     origins = np.asarray(origins, np.float64)
     dirs = np.asarray(dirs, np.float64)
     box = field.tracing_box(box)
@@ -287,33 +335,27 @@ def interface_numpy(field, box: Box, origins, dirs, samples: float = 0.1):
         p, inside, ev, start = o + t0 * d, False, 0, 0.0
         st = Status.EXITED
         while True:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                far = np.where(d > 0, (hi - p) / d, np.where(d < 0, (lo - p) / d, np.inf))
-            t_hi = max(float(far.min()), 0.0)
-            ts = np.arange(start, t_hi + ds, ds)
-            ts[-1] = min(ts[-1], t_hi)
-            f = phi(p + ts[:, None] * d) * (-1 if inside else 1)
-            neg = np.flatnonzero(f <= 0)
-            if not len(neg):
+            if curved and inside:
+                hit = curved_crossing(field, p, d)
+                x, d = hit if hit is not None else (None, d)
+            else:
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    far = np.where(d > 0, (hi - p) / d, np.where(d < 0, (lo - p) / d, np.inf))
+                t_hi = max(float(far.min()), 0.0)
+                x = first_crossing(phi, p, d, start, t_hi, inside, ds)
+            if x is None:
                 st = Status.NONFINITE if inside else Status.EXITED
                 break
             if ev >= MAX_EVENTS:
                 st = Status.TRAPPED
                 break
-            j = neg[0]
-            a, b = (ts[j - 1], ts[j]) if j else (ts[0], ts[0])
-            for _ in range(80):
-                mid = 0.5 * (a + b)
-                if (phi(p + mid * d)[0] * (-1 if inside else 1)) > 0:
-                    a = mid
-                else:
-                    b = mid
-            x = p + 0.5 * (a + b) * d
             g = field.sdf(x[None])[1][0]
             nrm = g / np.linalg.norm(g)
-            dn = refract(d, nrm, inside, field.eta)
+            dn = refract(d, nrm, inside, float(field.index(x[None])[0][0]))
             inside = float(dn @ nrm) < 0
             p, d, ev = x, dn, ev + 1
             start = 1e-9 * np.linalg.norm(box.size) / max(abs(float(dn @ nrm)), 1e-3)
+            if curved and inside:
+                p = x + start * dn
         status[i], out[i], events[i] = st, d, ev
     return status, out, events

@@ -233,7 +233,14 @@ def write_fit_report(fit) -> dict:
         "best_iteration": fit.best.iteration,
         "best_val_loss": float(fit.best.loss) if fit.best.found else None,
     }
-    for key in ("stopped", "stopped_without_progress", "size_search", "final_refit", "narrowing"):
+    for key in (
+        "stopped",
+        "stopped_without_progress",
+        "size_search",
+        "final_refit",
+        "face_search",
+        "narrowing",
+    ):
         if fit.record.get(key):
             result[key] = fit.record[key]
     # a resumed run (and the one a model choice goes on with) reads it from start.json

@@ -15,6 +15,15 @@ scenes by the eikonal tracer in float64 with a fine step:
   mid-plane falling to 1 at its faces and rim, tilted;
 - plume: a buoyant plume rising along z, eta - 1 about 1e-3 at its 2 mm wide base, widening
   and fading with height, meandering a little.
+
+Graded-index glass (a sharp surface, a graded interior; fields/interior.py), rendered by the
+interface tracer in float64 with steps of 0.1 mm inside (its exit directions agree with
+SciPy's DOP853 to 1e-9 rad, tests/test_interior.py):
+
+- grin-ball: a ball of radius 18 mm, index 1.6 at its centre falling radially to 1.5 at its
+  surface, with a gradient of 0.04 along z;
+- grin-stone: a seeded cut stone (as `faceted`) holding a seeded quadratic index, 1.45 to 1.65
+  at its centre, varying by up to about 0.1 inside.
 """
 
 from __future__ import annotations
@@ -39,14 +48,37 @@ from .realistic import Flaws, RealisticCapture
 
 SOLIDS = ("sphere", "prism", "drop")
 GRADED = ("luneburg", "blobs", "grin-rod", "grin-lens", "plume")
-SCENES = SOLIDS + GRADED + FAMILY
+GRADED_GLASS = ("grin-ball", "grin-stone")
+SCENES = SOLIDS + GRADED + FAMILY + GRADED_GLASS
+GRADED_GLASS_STEP = 0.1  # mm, the reference's RK4 step inside
+
+
+def graded_glass(name: str, seed: int):
+    """The graded-index glass scenes (GRADED_GLASS)."""
+    from .family import Faceted, corner_radius
+    from .fields.interface import PolytopeInterface, SphereInterface
+    from .fields.interior import GradedInterface
+
+    if name == "grin-ball":  # eta = 1.6 - 0.1 (r / R)^2 + 0.02 z / R
+        ball = SphereInterface((0.0, 0.0, 0.0), 18.0, 1.6)
+        terms = [0.0, 0.0, 0.02, -0.1, -0.1, -0.1, 0.0, 0.0, 0.0]
+        return GradedInterface(ball, terms, (0.0, 0.0, 0.0), 18.0, GRADED_GLASS_STEP)
+    faces = np.asarray(Faceted(seed=seed).faces, float)
+    stone = PolytopeInterface(faces, 1.0, Box(), (0.0, 0.0, 0.0))
+    rng = np.random.default_rng(seed + 7919)  # not the faces' stream
+    scale = float(corner_radius(faces))  # u within the unit ball
+    stone.set_data(np.append(stone.planes.ravel(), rng.uniform(1.45, 1.65)))
+    terms = np.concatenate(
+        [rng.uniform(-0.03, 0.03, 3), rng.uniform(-0.08, 0.0, 3), rng.uniform(-0.02, 0.02, 3)]
+    )
+    return GradedInterface(stone, terms, (0.0, 0.0, 0.0), scale, GRADED_GLASS_STEP)
 
 
 def scene_object(name: str, eta: float | None = None, tilt=None, seed: int | None = None):
     """The analytic object of a benchmark scene (its interface width is only used to draw
     the ground-truth eta volume; the images use the sharp surface). eta and tilt choose those
-    of a family shape, seed draws the `random` and `faceted` ones and the `blobs` cluster;
-    the other scenes are fixed."""
+    of a family shape, seed draws the `random`, `faceted` and `grin-stone` ones and the
+    `blobs` cluster; the other scenes are fixed."""
     if name in FAMILY:
         return make_shape(name, eta=eta, tilt=tilt, seed=seed)
     if name in SCENES and (eta is not None or tilt is not None):
@@ -69,6 +101,8 @@ def scene_object(name: str, eta: float | None = None, tilt=None, seed: int | Non
         return GrinRod(n0=1.2, radius=12.0, length=50.0, cap=8.0, tilt=(0.0, 30.0, 0.0))
     if name == "grin-lens":
         return GrinLens(dn=0.4, radius=20.0, thickness=12.0, rim=4.0, tilt=(40.0, 25.0, 0.0))
+    if name in GRADED_GLASS:
+        return graded_glass(name, seed or 0)
     if name == "plume":
         return Plume(
             amplitude=1e-3, sigma0=2.0, spread=0.08, half_height=35.0, center=(0.0, 0.0, 5.0)
@@ -99,7 +133,11 @@ def _ray_renderer(name: str, obj, box: Box, runtime):
     """A function (origins, dirs) -> (exit directions, ok mask)."""
     from .tracer import Status, Tracer, TraceSettings
 
-    if name in FAMILY or name in SOLIDS:
+    if name in GRADED_GLASS:
+        from .interface import InterfaceTracer
+
+        renderer = InterfaceTracer(obj, box, TraceSettings(precision="float64"), runtime=runtime)
+    elif name in FAMILY or name in SOLIDS:
         from .snell import SnellRenderer
         from .snell_sdf import SdfSnellRenderer
 
@@ -217,7 +255,13 @@ def make_dataset(name: str, out: Path, opt: MakeOptions, stream=None, obj=None) 
             "eta_volume": "gt_eta.npz",
             "surface": "gt_surface.ply",
             "renderer": (
-                "snell" if name in SOLIDS else "snell-sdf" if name in FAMILY else "eikonal-f64"
+                "snell"
+                if name in SOLIDS
+                else "snell-sdf"
+                if name in FAMILY
+                else "interface-f64"
+                if name in GRADED_GLASS
+                else "eikonal-f64"
             ),
         },
         extra={

@@ -329,6 +329,23 @@ SDF_INLINE real3 hess_mul(const REAL *h, real3 v) {
               h[4] * v.x + h[5] * v.y + h[2] * v.z);
 }
 
+/* One Illinois step on the bracket [a, b] of a root (regula falsi that halves the value of a
+ * side kept twice): m, with f(m) = fm, replaces b if it lies past the root, else a. */
+SDF_INLINE void illinois(REAL m, REAL fm, int past, REAL *a, REAL *b, REAL *fa, REAL *fb,
+                         int *side) {
+    if (past) {
+        *b = m;
+        *fb = fm;
+        if (*side == 1) *fa *= (REAL)0.5;
+        *side = 1;
+    } else {
+        *a = m;
+        *fa = fm;
+        if (*side == -1) *fb *= (REAL)0.5;
+        *side = -1;
+    }
+}
+
 #ifndef SDF_CROSSES
 /* Where phi, seen from side s (+1 outside, -1 inside), first turns <= 0 along o + t d for t
  * in [t, t_hi]: 1 with the root in *tc, 0 if it does not, -1 past the march cap. */
@@ -344,7 +361,6 @@ SDF_INLINE int sdf_cross(FIELD_PARAMS, real3 o, real3 d, REAL t, REAL t_hi, REAL
         REAL fn = s * sdf_value(FIELD_ARGS, o + tn * d);
         ++*work;
         if (fn <= (REAL)0) {
-            /* Illinois: regula falsi that halves the weight of a side kept twice */
             REAL a = t, b = tn, fa = f, fb = fn;
             int side = 0;
             for (int it = 0; it < 200 && b - a > TOL; ++it) {
@@ -352,17 +368,7 @@ SDF_INLINE int sdf_cross(FIELD_PARAMS, real3 o, real3 d, REAL t, REAL t_hi, REAL
                 if (!(m > a && m < b)) m = (REAL)0.5 * (a + b);
                 REAL fm = s * sdf_value(FIELD_ARGS, o + m * d);
                 ++*work;
-                if (fm > (REAL)0) {
-                    a = m;
-                    fa = fm;
-                    if (side == -1) fb *= (REAL)0.5;
-                    side = -1;
-                } else {
-                    b = m;
-                    fb = fm;
-                    if (side == 1) fa *= (REAL)0.5;
-                    side = 1;
-                }
+                illinois(m, fm, fm <= (REAL)0, &a, &b, &fa, &fb, &side);
             }
             *tc = (REAL)0.5 * (a + b);
             return 1;
@@ -393,48 +399,231 @@ SDF_INLINE REAL box_entry_distance(__global const REAL *restrict fp, real3 p, re
     return tn < tf ? tn : (REAL)-1;
 }
 
+/* The index inside the solid (fields/interior.py): with SDF_GRADED, eta(x) = sum_j c_j b_j(u),
+ * u = (x - INT_C) INT_INVL, b = (1, u, u_x^2, u_y^2, u_z^2, u_x u_y, u_x u_z, u_y u_z), its
+ * INT_N coefficients from the surface's eta on in fd; else the constant SDF_ETA. Rays inside
+ * follow x' = v, v' = eta grad eta (|v| = eta) by classic RK4 steps of INT_STEP mm, and the
+ * crossing out is solved on the last step's length. The backward pass integrates the ray and
+ * its adjoint back from each exit (drift of one segment), Simpson's weights on the stages. */
+#ifdef SDF_GRADED
+#define INT_N 10
+SDF_INLINE real3 int_u(real3 x) { return (x - r3(INT_CX, INT_CY, INT_CZ)) * (REAL)INT_INVL; }
+
+/* eta, grad eta and Hess eta (xx, yy, zz, xy, xz, yz) at x */
+SDF_INLINE REAL int_eval(FIELD_PARAMS, real3 x, real3 *g, REAL *hs) {
+    const __global REAL *c = &SDF_ETA(fd);
+    real3 u = int_u(x);
+    const REAL s = (REAL)INT_INVL;
+    *g = s * r3(c[1] + (REAL)2 * c[4] * u.x + c[7] * u.y + c[8] * u.z,
+                c[2] + (REAL)2 * c[5] * u.y + c[7] * u.x + c[9] * u.z,
+                c[3] + (REAL)2 * c[6] * u.z + c[8] * u.x + c[9] * u.y);
+    hs[0] = (REAL)2 * s * s * c[4];
+    hs[1] = (REAL)2 * s * s * c[5];
+    hs[2] = (REAL)2 * s * s * c[6];
+    hs[3] = s * s * c[7];
+    hs[4] = s * s * c[8];
+    hs[5] = s * s * c[9];
+    return c[0] + c[1] * u.x + c[2] * u.y + c[3] * u.z + c[4] * u.x * u.x + c[5] * u.y * u.y +
+           c[6] * u.z * u.z + c[7] * u.x * u.y + c[8] * u.x * u.z + c[9] * u.y * u.z;
+}
+
+/* acc_j += w b_j(x) */
+SDF_INLINE void int_basis_add(real3 x, REAL w, REAL *acc) {
+    real3 u = int_u(x);
+    acc[0] += w;
+    acc[1] += w * u.x;
+    acc[2] += w * u.y;
+    acc[3] += w * u.z;
+    acc[4] += w * u.x * u.x;
+    acc[5] += w * u.y * u.y;
+    acc[6] += w * u.z * u.z;
+    acc[7] += w * u.x * u.y;
+    acc[8] += w * u.x * u.z;
+    acc[9] += w * u.y * u.z;
+}
+
+SDF_INLINE real3 int_D(FIELD_PARAMS, real3 x) {
+    real3 g;
+    REAL hs[6];
+    REAL e = int_eval(FIELD_ARGS, x, &g, hs);
+    return e * g;
+}
+
+/* One RK4 step of length h (in sigma, ds = eta dsigma) of (x, v). */
+SDF_INLINE void int_step(FIELD_PARAMS, REAL h, real3 *x, real3 *v) {
+    const REAL h2 = (REAL)0.5 * h;
+    real3 a1 = *v, b1 = int_D(FIELD_ARGS, *x);
+    real3 a2 = *v + h2 * b1, b2 = int_D(FIELD_ARGS, *x + h2 * a1);
+    real3 a3 = *v + h2 * b2, b3 = int_D(FIELD_ARGS, *x + h2 * a2);
+    real3 a4 = *v + h * b3, b4 = int_D(FIELD_ARGS, *x + h * a3);
+    *x += h / (REAL)6 * (a1 + (REAL)2 * (a2 + a3) + a4);
+    *v += h / (REAL)6 * (b1 + (REAL)2 * (b2 + b3) + b4);
+}
+
+SDF_INLINE REAL int_h(FIELD_PARAMS) { return (REAL)INT_STEP / fmax(SDF_ETA(fd), (REAL)1); }
+
+/* From (x, v) inside the solid, steps until phi turns > 0: 1 with the crossing's state in
+ * (*x, *v), the whole steps in *nst and the last step's length in *tau; -1 past the cap. */
+SDF_INLINE int int_cross(FIELD_PARAMS, real3 *x, real3 *v, int *nst, REAL *tau, int *work) {
+    const REAL h = int_h(FIELD_ARGS);
+    REAL f = sdf_value(FIELD_ARGS, *x);
+    for (int k = 0; k < MAX_MARCH; ++k) {
+        if (f > (REAL)0) { /* on the surface already: a grazing entry */
+            *nst = k;
+            *tau = 0;
+            return 1;
+        }
+        real3 xn = *x, vn = *v;
+        int_step(FIELD_ARGS, h, &xn, &vn);
+        REAL fn = sdf_value(FIELD_ARGS, xn);
+        ++*work;
+        if (fn > (REAL)0) {
+            REAL a = 0, b = h, fa = f, fb = fn;
+            int side = 0;
+            for (int it = 0; it < 200 && (b - a) * SDF_ETA(fd) > TOL; ++it) {
+                REAL m = (a * fb - b * fa) / (fb - fa);
+                if (!(m > a && m < b)) m = (REAL)0.5 * (a + b);
+                real3 xm = *x, vm = *v;
+                int_step(FIELD_ARGS, m, &xm, &vm);
+                REAL fm = sdf_value(FIELD_ARGS, xm);
+                ++*work;
+                illinois(m, fm, fm > (REAL)0, &a, &b, &fa, &fb, &side);
+            }
+            *tau = b; /* the outside end: the next march starts across the surface */
+            int_step(FIELD_ARGS, b, x, v);
+            *nst = k;
+            return 1;
+        }
+        *x = xn;
+        *v = vn;
+        f = fn;
+    }
+    return -1;
+}
+
+/* The backward stage: (x, v, ax, av)' in s = -sigma, and acc += w av . dD/dc. */
+SDF_INLINE void int_back_rate(FIELD_PARAMS, real3 x, real3 v, real3 ax, real3 av, real3 *dx,
+                              real3 *dv, real3 *dax, real3 *dav, REAL w, REAL *acc) {
+    real3 g;
+    REAL hs[6];
+    REAL e = int_eval(FIELD_ARGS, x, &g, hs);
+    REAL ga = dot(g, av);
+    *dx = -v;
+    *dv = -e * g;
+    *dax = ga * g + e * hess_mul(hs, av); /* H_D av, D = eta grad eta */
+    *dav = ax;
+    /* dD/dc_j . av = b_j (grad eta . av) + eta grad b_j . av */
+    real3 u = int_u(x), q = w * e * (REAL)INT_INVL * av;
+    int_basis_add(x, w * ga, acc);
+    acc[1] += q.x;
+    acc[2] += q.y;
+    acc[3] += q.z;
+    acc[4] += (REAL)2 * u.x * q.x;
+    acc[5] += (REAL)2 * u.y * q.y;
+    acc[6] += (REAL)2 * u.z * q.z;
+    acc[7] += u.y * q.x + u.x * q.y;
+    acc[8] += u.z * q.x + u.x * q.z;
+    acc[9] += u.z * q.y + u.y * q.z;
+}
+
+/* One RK4 step of length h > 0 backwards (in s) of the ray and its adjoint. */
+SDF_INLINE void int_back_step(FIELD_PARAMS, REAL h, real3 *x, real3 *v, real3 *ax, real3 *av,
+                              REAL *acc) {
+    const REAL h2 = (REAL)0.5 * h, w1 = h / (REAL)6, w2 = h / (REAL)3;
+    real3 x1, v1, a1, b1, x2, v2, a2, b2, x3, v3, a3, b3, x4, v4, a4, b4;
+    int_back_rate(FIELD_ARGS, *x, *v, *ax, *av, &x1, &v1, &a1, &b1, w1, acc);
+    int_back_rate(FIELD_ARGS, *x + h2 * x1, *v + h2 * v1, *ax + h2 * a1, *av + h2 * b1, &x2, &v2,
+                  &a2, &b2, w2, acc);
+    int_back_rate(FIELD_ARGS, *x + h2 * x2, *v + h2 * v2, *ax + h2 * a2, *av + h2 * b2, &x3, &v3,
+                  &a3, &b3, w2, acc);
+    int_back_rate(FIELD_ARGS, *x + h * x3, *v + h * v3, *ax + h * a3, *av + h * b3, &x4, &v4, &a4,
+                  &b4, w1, acc);
+    *x += h / (REAL)6 * (x1 + (REAL)2 * (x2 + x3) + x4);
+    *v += h / (REAL)6 * (v1 + (REAL)2 * (v2 + v3) + v4);
+    *ax += h / (REAL)6 * (a1 + (REAL)2 * (a2 + a3) + a4);
+    *av += h / (REAL)6 * (b1 + (REAL)2 * (b2 + b3) + b4);
+}
+#else
+#define INT_N 1
+SDF_INLINE REAL int_eval(FIELD_PARAMS, real3 x, real3 *g, REAL *hs) {
+    *g = r3(0, 0, 0);
+    return SDF_ETA(fd);
+}
+SDF_INLINE void int_basis_add(real3 x, REAL w, REAL *acc) { acc[0] += w; }
+#endif
+
 /* One ray from o along unit d: its status, exit point and direction, event count and march
- * work; the events (point, incoming direction, inside before it) into ex/ed/ein. */
+ * work; the events (point, incoming and outgoing direction, inside before it, and with
+ * SDF_GRADED the steps and last step of the curved segment that ends there) into ex..et. */
 SDF_INLINE int sdf_path(FIELD_PARAMS, REAL lip, real3 o, real3 d, real3 *pos, real3 *dir,
-                        int *nev, int *work, real3 *ex, real3 *ed, int *ein) {
+                        int *nev, int *work, real3 *ex, real3 *ed, real3 *eo, int *ein, int *en,
+                        REAL *et) {
     *nev = 0;
     *pos = o;
     *dir = d;
     REAL t0 = box_entry_distance(fp, o, d);
     if (t0 < (REAL)0) return ST_MISSED;
-    const REAL eta = SDF_ETA(fd);
     real3 p = o + t0 * d;
     int inside = 0, ev = 0;
     REAL start = 0;
     if (sdf_value(FIELD_ARGS, p) <= (REAL)0) return ST_TRAPPED; /* the solid reaches the box wall */
     for (;;) {
         *nev = ev;
-        REAL t_hi = box_exit_distance(fp, p, d), tc;
-        int h = sdf_cross(FIELD_ARGS, p, d, start, t_hi, inside ? (REAL)-1 : (REAL)1, lip, work,
-                          &tc);
-        if (h < 0) return ST_TRAPPED;
-        if (h == 0) {
-            *dir = d;
-            *pos = p + t_hi * d;
-            return inside ? ST_NONFINITE : ST_EXITED;
+        real3 x;
+        int nst = 0;
+        REAL tau = 0;
+#ifdef SDF_GRADED
+        if (inside) {
+            real3 g;
+            REAL hs[6];
+            real3 v = int_eval(FIELD_ARGS, p, &g, hs) * d;
+            if (int_cross(FIELD_ARGS, &p, &v, &nst, &tau, work) < 0) return ST_TRAPPED;
+            x = p;
+            d = unit3(v);
+        } else
+#endif
+        {
+            REAL t_hi = box_exit_distance(fp, p, d), tc;
+            int h = sdf_cross(FIELD_ARGS, p, d, start, t_hi, inside ? (REAL)-1 : (REAL)1, lip,
+                              work, &tc);
+            if (h < 0) return ST_TRAPPED;
+            if (h == 0) {
+                *dir = d;
+                *pos = p + t_hi * d;
+                return inside ? ST_NONFINITE : ST_EXITED;
+            }
+            x = p + tc * d;
         }
         if (ev >= MAX_EVENTS) return ST_TRAPPED;
-        real3 x = p + tc * d, g;
+        real3 g, gi;
         REAL hs[6];
         sdf_eval(FIELD_ARGS, x, &g, hs);
         real3 nrm = unit3(g);
+        REAL eta = int_eval(FIELD_ARGS, x, &gi, hs);
+        if (!(eta > (REAL)0)) return ST_NONFINITE;
         real3 dn = refract_or_reflect(d, nrm, inside, eta);
         if (!finite3(x) || !finite3(dn)) return ST_NONFINITE;
         ex[ev] = x;
         ed[ev] = d;
+        eo[ev] = dn;
         ein[ev] = inside;
+        en[ev] = nst;
+        et[ev] = tau;
         ++ev;
         inside = dot(dn, nrm) < (REAL)0;
-        p = x;
-        d = dn;
         start = OFFSET / fmax(fabs(dot(dn, nrm)), (REAL)1e-3);
+        p = x;
+#ifdef SDF_GRADED
+        if (inside) p = x + start * dn; /* the march starts off the surface, inside */
+#endif
+        d = dn;
     }
 }
+
+#define SDF_EVENTS                                                                             \
+    real3 ex[MAX_EVENTS], ed[MAX_EVENTS], eo[MAX_EVENTS], pos, dir;                           \
+    int ein[MAX_EVENTS], en[MAX_EVENTS], nev, w = 0;                                           \
+    REAL et[MAX_EVENTS];
 
 __kernel void interface_trace(FIELD_PARAMS, const REAL lip, const int n,
                               __global const REAL *ox, __global const REAL *oy,
@@ -446,10 +635,9 @@ __kernel void interface_trace(FIELD_PARAMS, const REAL lip, const int n,
                               __global int *work) {
     const int i = get_global_id(0);
     if (i >= n) return;
-    real3 ex[MAX_EVENTS], ed[MAX_EVENTS], pos, dir;
-    int ein[MAX_EVENTS], nev, w = 0;
+    SDF_EVENTS
     real3 o = r3(ox[i], oy[i], oz[i]), d = unit3(r3(dx[i], dy[i], dz[i]));
-    int st = sdf_path(FIELD_ARGS, lip, o, d, &pos, &dir, &nev, &w, ex, ed, ein);
+    int st = sdf_path(FIELD_ARGS, lip, o, d, &pos, &dir, &nev, &w, ex, ed, eo, ein, en, et);
     px[i] = pos.x;
     py[i] = pos.y;
     pz[i] = pos.z;
@@ -462,7 +650,7 @@ __kernel void interface_trace(FIELD_PARAMS, const REAL lip, const int n,
 }
 
 /* The adjoint of one ray's exit direction (mu = dJ/d dir) back to phi's parameters (grad,
- * atomic adds) and the index (geta[i]). */
+ * atomic adds) and the index's INT_N coefficients (geta[i * INT_N + j]). */
 __kernel void interface_adjoint(FIELD_PARAMS, const REAL lip, const int n,
                                 __global const REAL *ox, __global const REAL *oy,
                                 __global const REAL *oz, __global const REAL *dx,
@@ -472,14 +660,13 @@ __kernel void interface_adjoint(FIELD_PARAMS, const REAL lip, const int n,
                                 __global REAL *geta) {
     const int i = get_global_id(0);
     if (i >= n) return;
-    real3 ex[MAX_EVENTS], ed[MAX_EVENTS], pos, dir;
-    int ein[MAX_EVENTS], nev, w = 0;
+    SDF_EVENTS
     real3 o = r3(ox[i], oy[i], oz[i]), d0 = unit3(r3(dx[i], dy[i], dz[i]));
-    int st = sdf_path(FIELD_ARGS, lip, o, d0, &pos, &dir, &nev, &w, ex, ed, ein);
-    REAL aeta = 0;
+    int st = sdf_path(FIELD_ARGS, lip, o, d0, &pos, &dir, &nev, &w, ex, ed, eo, ein, en, et);
+    REAL acc[INT_N];
+    for (int j = 0; j < INT_N; ++j) acc[j] = 0;
     real3 ad = r3(mux[i], muy[i], muz[i]), ax = r3(0, 0, 0);
     if (st != ST_EXITED) nev = 0;
-    const REAL eta = SDF_ETA(fd);
 #ifdef ADJ_MIN_COS /* grazing rays carry no gradient (interface.py, GRAZING_COS) */
     for (int k = 0; k < nev; ++k) {
         real3 g;
@@ -489,9 +676,10 @@ __kernel void interface_adjoint(FIELD_PARAMS, const REAL lip, const int n,
     }
 #endif
     for (int k = nev - 1; k >= 0; --k) {
-        real3 x = ex[k], d = ed[k], g;
-        REAL hs[6];
+        real3 x = ex[k], d = ed[k], g, gi;
+        REAL hs[6], hi[6];
         sdf_eval(FIELD_ARGS, x, &g, hs);
+        const REAL eta = int_eval(FIELD_ARGS, x, &gi, hi);
         REAL gn = sqrt(dot(g, g));
         real3 nrm = g / gn;
         REAL sg = dot(d, nrm) < (REAL)0 ? (REAL)1 : (REAL)-1;
@@ -500,7 +688,7 @@ __kernel void interface_adjoint(FIELD_PARAMS, const REAL lip, const int n,
         REAL r = ein[k] ? eta : (REAL)1 / eta;
         REAL k2 = (REAL)1 - r * r * ((REAL)1 - c * c);
         real3 a = ad, a_d, a_m;
-        REAL a_c;
+        REAL a_c, a_eta = 0;
         if (k2 < (REAL)0) { /* reflection: d' = d + 2 c m */
             a_d = a;
             a_m = (REAL)2 * c * a;
@@ -512,13 +700,36 @@ __kernel void interface_adjoint(FIELD_PARAMS, const REAL lip, const int n,
             REAL a_k = -s1 / ((REAL)2 * sk);
             REAL a_r = dot(a, d) + s1 * c - a_k * (REAL)2 * r * ((REAL)1 - c * c);
             a_c = s1 * r + a_k * (REAL)2 * r * r * c;
-            aeta += a_r * (ein[k] ? (REAL)1 : (REAL)-1 / (eta * eta));
+            a_eta = a_r * (ein[k] ? (REAL)1 : (REAL)-1 / (eta * eta));
         }
-        a_d -= a_c * m; /* c = -d . m */
+        int_basis_add(x, a_eta, acc); /* the index at the hit point */
+        a_d -= a_c * m;               /* c = -d . m */
         a_m -= a_c * d;
         real3 a_n = sg * a_m;
         real3 a_g = (a_n - nrm * dot(nrm, a_n)) / gn; /* n = g / |g| */
-        real3 a_x = ax + hess_mul(hs, a_g);           /* g = grad phi(x) */
+        real3 a_x = ax + hess_mul(hs, a_g) + a_eta * gi; /* g = grad phi(x), eta(x) */
+#ifdef SDF_GRADED
+        if (ein[k]) {
+            /* x = X(s*) on phi = 0 along the curved ray, d = V / |V|, V = eta(x) d:
+             * the crossing's s* moves with X and phi, s*' = -(g . dX + dphi) / (g . V) */
+            real3 v = eta * d, dd = eta * gi;
+            real3 a_v = (a_d - d * dot(d, a_d)) / eta;
+            REAL q = (dot(a_x, v) + dot(a_v, dd)) / dot(g, v);
+            sdf_splat(FIELD_ARGS, grad, x, -q, a_g);
+            real3 bx = a_x - q * g, bv = a_v;
+            const REAL h = int_h(FIELD_ARGS);
+            int_back_step(FIELD_ARGS, et[k], &x, &v, &bx, &bv, acc);
+            for (int s = 0; s < en[k]; ++s) int_back_step(FIELD_ARGS, h, &x, &v, &bx, &bv, acc);
+            /* the segment began at event k - 1 with V = eta(x') d', its outgoing direction */
+            real3 xp = ex[k - 1], dp = eo[k - 1], gp;
+            REAL ep = int_eval(FIELD_ARGS, xp, &gp, hi);
+            REAL a_ep = dot(bv, dp);
+            int_basis_add(xp, a_ep, acc);
+            ad = ep * bv;
+            ax = bx + a_ep * gp;
+            continue;
+        }
+#endif
         /* x = p + t d on phi(x) = 0: dx = P (dp + t dd) - d dphi / (g . d) */
         REAL s2 = dot(d, a_x) / dot(g, d);
         real3 a_p = a_x - s2 * g;
@@ -527,7 +738,7 @@ __kernel void interface_adjoint(FIELD_PARAMS, const REAL lip, const int n,
         ad = a_d + t * a_p;
         ax = a_p;
     }
-    geta[i] = aeta;
+    for (int j = 0; j < INT_N; ++j) geta[i * INT_N + j] = acc[j];
 }
 
 /* phi and its gradient at points (the device check against the NumPy reference). */

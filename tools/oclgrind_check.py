@@ -50,6 +50,7 @@ TARGETS = (
     "tests/test_skip_empty.py -k same_rays_with_fewer_steps",
     "tests/test_interface.py -k "
     "'sphere_crossings or right_angle or (gradient_matches and sphere-grid)'",
+    "tests/test_interior.py -k 'sphere and (curved_crossings or gradient_matches)'",
 )
 ENV = {
     "CLREFRACT_NO_PIP_DRIVERS": "1",  # Oclgrind alone, not the pip drivers beside it

@@ -16,6 +16,10 @@ def field_from_dict(d: dict) -> Field:
     """An analytic field from {'kind': ..., parameter: value}."""
     d = dict(d)
     kind = d.pop("kind", None)
+    if kind == "graded-glass":
+        from .interior import GradedInterface
+
+        return GradedInterface.from_dict({"kind": kind, **d})
     cls = ANALYTIC.get(kind)
     if cls is None:
         # the family shapes (scene.json of their datasets): ground truth for eta metrics
@@ -68,14 +72,12 @@ def load_field_file(path: Path, box: Box | None = None) -> Field:
             from .levelset import LevelSetField
 
             return LevelSetField.load(path)
-        if kind == "interface":
-            from .interface import InterfaceField
+        if kind in ("interface", "polytope"):
+            from .interface import InterfaceField, PolytopeInterface
+            from .interior import GradedInterface
 
-            return InterfaceField.load(path)
-        if kind == "polytope":
-            from .interface import PolytopeInterface
-
-            return PolytopeInterface.load(path)
+            cls = InterfaceField if kind == "interface" else PolytopeInterface
+            return GradedInterface.wrap_loaded(cls.load(path), path)
         if kind == "hashgrid":
             from .hashgrid import HashGridField
 

@@ -45,7 +45,16 @@ def sharp_eta(phi: np.ndarray, eta: float) -> tuple[np.ndarray, np.ndarray]:
     return np.where(phi < 0, eta, 1.0), np.zeros((len(phi), 3))
 
 
-class InterfaceField(LevelSetField):
+class ConstantInterior:
+    """One index inside the surface (fields/interior.py grades it)."""
+
+    def index(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The index inside (n,) and its gradient (n, 3), wherever pts lie."""
+        n = len(pts)
+        return np.full(n, float(self.eta)), np.zeros((n, 3))
+
+
+class InterfaceField(ConstantInterior, LevelSetField):
     """A solid of index `eta` inside the zero set of `phi` (B-spline node values, mm). The
     level set's `width` only sets the band its hull start smooths over."""
 
@@ -81,7 +90,7 @@ class InterfaceField(LevelSetField):
         return cls(ls.phi.copy(), ls.box, ls.eta, ls.width, ls.eta_bound)
 
 
-class SphereInterface(Field):
+class SphereInterface(ConstantInterior, Field):
     """A glass sphere of radius `radius` about `centre` with a sharp surface, in `box`."""
 
     kind = "interface-sphere"
@@ -123,7 +132,7 @@ class SphereInterface(Field):
     def sdf(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r = np.asarray(pts, np.float64) - self._p[:3]
         length = np.linalg.norm(r, axis=1)
-        return length - self._p[3], r / length[:, None]
+        return length - self._p[3], r / np.maximum(length, 1e-300)[:, None]
 
     def eval(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return sharp_eta(self.sdf(pts)[0], self.eta)
@@ -133,6 +142,10 @@ class SphereInterface(Field):
 
     def min_step(self) -> float:
         return float(self._p[3]) * 1e-3
+
+    def surface(self, box: Box | None = None, res: int = 128):
+        """Marching cubes of the sphere on a res^3 grid over the field's box."""
+        return zero_set(self.sdf, self.box, res)
 
     def uses_window(self) -> bool:
         return True
@@ -148,7 +161,7 @@ class SphereInterface(Field):
 NORMAL_ARM = 10.0
 
 
-class PolytopeInterface(Field):
+class PolytopeInterface(ConstantInterior, Field):
     """A convex solid of index `eta` bounded by planes: phi(x) = max_j n_j . (x - centre) -
     d_j, with n_j = a_j / |a_j| (`planes`: rows (a_j, d_j), mm). Flat faces and sharp edges
     held exactly, which a spline of any node count smooths; sharp glass of a few faces (a

@@ -210,11 +210,12 @@ def face_offsets(fit) -> dict:
         return fit.loss(idx)
 
     params, loss = before.copy(), loss_of(before)
+    faces = bound.field.n_planes
     traced = 0
     for step in FACE_STEPS:
         for _ in range(FACE_SWEEPS):
             start = loss
-            for j in range(len(params) // 4):
+            for j in range(faces):
                 for delta in step * np.array(FACE_TRIES):
                     if traced >= FACE_BUDGET:
                         break
@@ -231,7 +232,7 @@ def face_offsets(fit) -> dict:
     kept = held < held_before
     if not kept:
         bound.set_params(before, fit.it)
-    moved = np.abs(params[3:-1:4] - before[3:-1:4])
+    moved = np.abs(params[3 : 4 * faces : 4] - before[3 : 4 * faces : 4])
     fit.stream.write(
         f"finish: faces moved up to {moved.max():.2f} mm, held-out loss {held_before:.4g} -> "
         f"{held:.4g} ({'kept' if kept else 'not kept'})\n"

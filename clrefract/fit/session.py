@@ -14,7 +14,7 @@ from .. import start_losses
 from ..errors import ClrefractError
 from ..imageio import ensure_out_dir
 from .config import FitConfig
-from .kinds import candidate_config, guide_config, kind_of, make_field
+from .kinds import candidate_config, guide_config, kind_of
 from .registration import register_run, share_registration
 from .runfolder import START_FILES, RunFolder
 from .starts import NoObject
@@ -194,6 +194,6 @@ def field_from_run(run: Path):
     if ckpt.guide and kind_of(cfg).shows_guide(cfg):
         cfg, params = guide_config(cfg, top), ckpt.guide["guide_params"]
         top, res = float(ckpt.guide["guide_eta_max"]), int(ckpt.guide["guide_res"])
-    field = make_field(cfg, box, top, res)
+    field = kind_of(cfg).run_field(cfg, box, top, res)
     field.set_data(params)
     return field

@@ -210,6 +210,9 @@ class Fit:
         self.check_walls(say_walls)
         res = self.start_grid()
         guide = STARTS[self.kind.start(self.cfg)]().run(self, res)
+        graded = self.kind.with_interior(self.cfg, self.field)  # a surface placed, then graded
+        if graded is not self.field:
+            self.bind(graded)
         self.optimizer = optimizer_for(self, guide)
 
     # --- validation ---------------------------------------------------------------------------
@@ -257,7 +260,7 @@ class Fit:
         self.eta_max = float(ckpt.eta_max or eta_max or self.eta_max)
         # bound (and its occupancy built) as at iteration 0: its rebuilds then fall where an
         # uninterrupted run's did
-        self.bind(self.make_field(ckpt.resolution))
+        self.bind(self.kind.run_field(self.cfg, self.box, self.eta_max, ckpt.resolution))
         if len(ckpt.params) != len(self.params):
             raise ClrefractError(
                 f"{self.out.checkpoint_path}: checkpoint has {len(ckpt.params)} parameters, "
