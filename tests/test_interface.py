@@ -251,7 +251,8 @@ def test_a_small_interface_fit_climbs_from_its_hull_start(sphere_25x48, tmp_path
 def test_the_command_line_picks_the_model_the_held_out_views_prefer(sphere_8x24, tmp_path):
     """Without --field-kind, `clrefract fit` starts the interface, the polytope and a voxel
     grid in RUN/candidates, goes on with the start of lowest held-out loss (model.json says
-    each, or why it could not start), and the run resumes as that kind."""
+    each, or why it could not start), a surface then tried with a graded interior too, and
+    the run resumes as that kind."""
     import json
 
     import tomllib
@@ -264,11 +265,18 @@ def test_the_command_line_picks_the_model_the_held_out_views_prefer(sphere_8x24,
     assert main(args) == 0
     model = json.loads((run / "model.json").read_text())
     scores = model["held_out_loss"]
-    assert set(scores) | set(model["refused"]) == {"interface", "polytope", "voxel"}
-    assert {"interface", "voxel"} <= set(scores)
-    assert model["chosen"] == min(scores, key=scores.get)
+    first = {k: v for k, v in scores.items() if not k.endswith("-graded")}
+    assert set(first) | set(model["refused"]) == {"interface", "polytope", "voxel"}
+    assert {"interface", "voxel"} <= set(first)
+    winner = min(first, key=first.get)
+    # a surface chosen is tried with a graded interior, kept below 0.9 of its loss
+    assert (f"{winner}-graded" in scores) == (winner != "voxel")
+    graded = model["chosen"] == f"{winner}-graded"
+    assert graded == (winner != "voxel" and scores[f"{winner}-graded"] < 0.9 * first[winner])
+    assert model["chosen"] in (winner, f"{winner}-graded")
     cfg = tomllib.loads((run / "config.toml").read_text())
-    assert cfg["field"] == model["chosen"]
+    assert cfg["field"] == winner
+    assert cfg["interior"] == ("quadratic" if graded else "constant")
     for name in scores:
         assert (run / "candidates" / name / "checkpoint.npz").is_file()
     assert main(["fit", str(sphere_8x24), "--out", str(run), "--resume"]) == 0

@@ -137,7 +137,9 @@ def test_the_graded_glass_scenes_hold_their_index(tmp_path):
     assert not np.array_equal(a.data(), b.data())
 
 
-def test_interior_quadratic_is_refused_for_a_continuous_field(tmp_path, capsys):
+def test_an_interior_a_field_cannot_take_is_refused(tmp_path, capsys):
+    """A graded interior of a voxel grid, and the model choice's interior for one kind: one
+    line each, exit status 2, nothing written."""
     from clrefract.cli import main
 
     code = main(
@@ -154,6 +156,11 @@ def test_interior_quadratic_is_refused_for_a_continuous_field(tmp_path, capsys):
     )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "interior 'quadratic'" in err[0]
+    assert not (tmp_path / "r").exists()
+    code = main(["fit", str(tmp_path), "--out", str(tmp_path / "r"), "--field-kind", "polytope",
+                 "--interior", "auto"])  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "model choice's" in err[0]
     assert not (tmp_path / "r").exists()
 
 

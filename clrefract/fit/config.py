@@ -62,9 +62,9 @@ class FitConfig:
     # start searches it (kinds.POLYTOPE_ROUNDINGS) and records what it chose
     rounding: float = -1.0
     # interface and polytope: the index inside the surface, "constant" or "quadratic" (a
-    # graded interior, fields/interior.py, fitted with the surface from the start). Not
-    # chosen from the data: a quadratic interior's probe scored 15% below one index on the
-    # glass sphere and 5% above it on a graded cut stone (docs/design/graded-interior.md)
+    # graded interior, fields/interior.py, fitted with the surface from the start); "auto"
+    # (field "auto" only, the command line's default there): the model choice tries the
+    # chosen surface with a quadratic interior too (session.choose_model)
     interior: str = "constant"
     # fitting the hash grid to the level-set start: the true sphere renders at 30.99 dB after
     # 1000 steps, 31.71 after 2000 (the level set itself: 31.86)
@@ -323,7 +323,10 @@ HELP = {
     "rounding": "polytope: mm over which its edges are rounded (a softened max over its faces); "
     "-1: searched by the start",
     "interior": "interface and polytope: the index inside the surface, constant or quadratic "
-    "(graded-index glass: a quadratic of position, rays bent by the eikonal equation inside)",
+    "(graded-index glass: a quadratic of position, rays bent by the eikonal equation inside); "
+    "auto (with field auto): the model choice tries the chosen surface with a quadratic "
+    "interior too, and keeps it where the held-out views prefer it (default: auto with field "
+    "auto, else constant)",
     "index_headroom": "a sigmoid hash grid from the hull starts with eta_max this far above "
     "the start's index, in units of index - 1",
     "distil_iterations": "steps fitting the hash grid to its level-set start",
@@ -446,7 +449,7 @@ CHOICES = {
     "precision": ("float32", "float64"),
     "loss": ("auto", "srgb", "srgb420", "linear"),
     "register": ("auto", "on", "off"),
-    "interior": ("constant", "quadratic"),
+    "interior": ("auto", "constant", "quadratic"),
 }
 KNOWN = {f.name: f for f in fields(FitConfig)}
 

@@ -132,6 +132,11 @@ class FieldKind:
                 "(hashed table entries, the MLP); fit a voxel grid or level set, or set "
                 "skip_empty = false"
             )
+        if cfg.interior == "auto" and not self.candidates:
+            raise ClrefractError(
+                "interior 'auto' is the model choice's (field 'auto'); a field of one kind "
+                "takes interior 'constant' or 'quadratic'"
+            )
         if cfg.interior == "quadratic" and not self.holds_interior:
             raise ClrefractError(
                 f"interior 'quadratic' grades the index inside a sharp surface: field "
@@ -628,7 +633,7 @@ class AutoKind(FieldKind):
     optimizers = ("adam", "line-search", "descent")
 
     def defaults(self, items):
-        pass  # each candidate's own, when it is tried
+        items.setdefault("interior", "auto")  # the rest: each candidate's own, when tried
 
     def usable(self, cfg) -> tuple:
         """The candidates this configuration can run (an interface starts from the hull)."""
@@ -663,10 +668,10 @@ KINDS = {
 }
 
 
-def candidate_config(cfg: FitConfig, name: str) -> FitConfig:
+def candidate_config(cfg: FitConfig, name: str, interior: str = "") -> FitConfig:
     """An automatic run's configuration for one candidate kind: the values it was given
-    (load_config's record; else those off FitConfig's defaults), then that kind's
-    defaults."""
+    (load_config's record; else those off FitConfig's defaults), `interior` where given,
+    then that kind's defaults. The model choice's "auto" interior is one index here."""
     given = getattr(cfg, "given", None)  # load_config's record of the keys it was given
     items = {
         f.name: getattr(cfg, f.name)
@@ -675,8 +680,18 @@ def candidate_config(cfg: FitConfig, name: str) -> FitConfig:
         and (f.name in given if given is not None else getattr(cfg, f.name) != f.default)
     }
     items["field"] = name
+    if interior or items.get("interior") == "auto":
+        items["interior"] = interior or "constant"
     KINDS[name].defaults(items)
     return coerced(items)
+
+
+def graded_candidate(cfg: FitConfig, name: str) -> FitConfig | None:
+    """The model choice's graded variant of candidate `name` (interior = "auto" and a kind
+    that holds an interior), else None."""
+    if cfg.interior != "auto" or not KINDS[name].holds_interior:
+        return None
+    return candidate_config(cfg, name, "quadratic")
 
 
 def kind_named(name: str) -> FieldKind:
