@@ -219,7 +219,11 @@ def test_a_graded_polytope_fit_runs_renders_and_resumes(tmp_path, capsys):
     assert 'interior = "quadratic"' in (run / "config.toml").read_text()
     saved = load_field_file(run / "field.npz")
     assert isinstance(saved, GradedInterface) and np.abs(saved.coeffs).max() > 1e-4
-    assert isinstance(field_from_run(run), GradedInterface)
+    # the interior's frame as the start placed it, recorded: the checkpoint's field is the run's
+    back = field_from_run(run)
+    assert isinstance(back, GradedInterface) and back.scale == saved.scale
+    assert np.array_equal(back.centre, saved.centre)
+    assert "interior_frame = [" in (run / "config.toml").read_text()
     assert (
         main(
             [

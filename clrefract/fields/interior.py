@@ -25,8 +25,9 @@ from .base import Box, Field
 
 N_COEFFS = 10  # the constant, 3 linear and 6 quadratic terms
 TERMS = ("1", "u_x", "u_y", "u_z", "u_x^2", "u_y^2", "u_z^2", "u_x u_y", "u_x u_z", "u_y u_z")
-# the interior's RK4 step as a fraction of the box's smallest side: at 1/256 the quick GRIN
-# scenes' exit directions agree with a float64 DOP853 solution to 1e-7 rad
+# the interior's RK4 step as a fraction of the box's smallest side: at 1/256 (0.39 mm) the
+# graded-glass scenes' exit directions agree with SciPy's DOP853 to 2e-11 rad in float64
+# (the index is a quadratic); float32 rounding, 6e-5 to 2.5e-4 rad, is far larger
 STEP_FRACTION = 1 / 256
 
 

@@ -66,6 +66,9 @@ class FitConfig:
     # (field "auto" only, the command line's default there): the model choice tries the
     # chosen surface with a quadratic interior too (session.choose_model)
     interior: str = "constant"
+    # a graded interior's frame, u = (x - centre) / scale: (cx, cy, cz, scale), mm; empty: the
+    # start's solid's extent, recorded here so that resume, render and eval make the same field
+    interior_frame: tuple = ()
     # fitting the hash grid to the level-set start: the true sphere renders at 30.99 dB after
     # 1000 steps, 31.71 after 2000 (the level set itself: 31.86)
     distil_iterations: int = 2000
@@ -205,6 +208,12 @@ class FitConfig:
         """The checks every field kind shares (the kind's own: kinds.py)."""
         if self.box:
             self.box = tuple(box_values(self.box, "box"))
+        frame = tuple(float(v) for v in self.interior_frame)
+        if frame and not (len(frame) == 4 and all(map(math.isfinite, frame)) and frame[3] > 0):
+            raise ClrefractError(
+                f"interior_frame is a centre x y z and a scale > 0 (mm), got {list(frame)}"
+            )
+        self.interior_frame = frame
         check_count("batch", self.batch, 1, 2**26)
         check_memory(f"batch {self.batch}", self.batch * FIT_BYTES_PER_RAY * 4)
         check_count("iterations", self.iterations, 1, INT32_MAX)
@@ -327,6 +336,8 @@ HELP = {
     "auto (with field auto): the model choice tries the chosen surface with a quadratic "
     "interior too, and keeps it where the held-out views prefer it (default: auto with field "
     "auto, else constant)",
+    "interior_frame": "a graded interior's frame: centre x y z and scale, mm (default: the "
+    "start's solid's extent, recorded in config.toml)",
     "index_headroom": "a sigmoid hash grid from the hull starts with eta_max this far above "
     "the start's index, in units of index - 1",
     "distil_iterations": "steps fitting the hash grid to its level-set start",

@@ -184,7 +184,12 @@ class FieldKind:
             return field
         from ..fields.interior import GradedInterface
 
-        return GradedInterface(field)
+        frame = cfg.interior_frame
+        if not frame:  # the start's: graded where the surface was placed, and recorded
+            graded = GradedInterface(field)
+            cfg.interior_frame = (*graded.centre.tolist(), graded.scale)
+            return graded
+        return GradedInterface(field, centre=frame[:3], scale=frame[3])
 
     def run_field(self, cfg: FitConfig, box, eta_max: float, res: int):
         """The field a run's checkpoint holds (`make`'s, graded as the run says): a start
