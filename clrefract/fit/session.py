@@ -108,8 +108,8 @@ def probe_length(cfg: FitConfig) -> int:
 
 # a graded interior is chosen where its probe's best held-out loss is below this share of
 # its surface's with one index. Quick protocol, 100 steps of each: nine glass scenes 1.01 (two
-# bodies) to 2.08 (a cut stone), graded glass 0.61 (grin-ball) to 0.79; a stone whose index
-# varies by 0.04 probed at 0.90 once and 1.01 twice (docs/design/graded-interior.md)
+# bodies) to 2.08 (a cut stone), graded glass 0.52 to 0.61 (grin-ball); graded cut stones
+# spread from 0.75 to 1.02 (docs/design/graded-interior.md)
 GRADED_SHARE = 0.9
 
 
