@@ -103,14 +103,6 @@ class GradedInterface(Field):
     def n_shared(self) -> int:
         return N_COEFFS
 
-    @property
-    def shared_offset(self) -> int:
-        return self.solid.shared_offset
-
-    @property
-    def eta(self) -> float:
-        return self.solid.eta
-
     def all_coeffs(self) -> np.ndarray:
         return np.append(self.solid.eta, self.coeffs)
 
@@ -143,19 +135,10 @@ class GradedInterface(Field):
     def kernel_params(self, box: Box, params=None) -> np.ndarray:
         return self.solid.kernel_params(box, params)
 
-    def sdf(self, pts):
-        return self.solid.sdf(pts)
-
     def eval(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         inside = self.sdf(pts)[0] < 0
         eta, grad = self.index(pts)
         return np.where(inside, eta, 1.0), np.where(inside[:, None], grad, 0.0)
-
-    def lipschitz(self) -> float:
-        return self.solid.lipschitz()
-
-    def min_step(self) -> float:
-        return self.solid.min_step()
 
     def uses_window(self) -> bool:
         return True
@@ -163,11 +146,9 @@ class GradedInterface(Field):
     def tracing_box(self, box: Box) -> Box:
         return self.solid.tracing_box(box)
 
-    def surface(self, box: Box | None = None, res: int = 128):
-        return self.solid.surface(box, res)
-
     def __getattr__(self, name: str):
-        # the rest (planes, nodes, rounding...) is the surface's: its adapters still apply
+        # the rest (sdf, surface, eta, shared_offset, lipschitz, planes...) is the surface's:
+        # its adapters still apply
         if name == "solid":
             raise AttributeError(name)
         return getattr(self.solid, name)
