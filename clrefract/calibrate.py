@@ -641,6 +641,8 @@ def calibrate(
 
 
 REGISTRATION_FILE = "registration.json"  # a run folder's Corrections (`fit --register`)
+# where a fit that moved its training cameras with the field says how far (fit/centres.py)
+CENTRES_FILE = "camera_centres.json"
 
 
 def run_corrections(run) -> Corrections | None:

@@ -39,6 +39,7 @@ class GradientResult:
     # forward checkpoints where it restarted (discrete: the replay's rounding, ~0)
     steps: int
     growth: np.ndarray | None = None  # (n,) max |mu| / |mu(T)| along each ray's backward pass
+    origin_grad: np.ndarray | None = None  # (n, 3) dJ/d(ray origin), the directions held
 
 
 ADJOINTS = ("continuous", "discrete")
@@ -71,6 +72,24 @@ def box_entry(box: Box, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     tmin = box.ray_span(origins, d)[0]
     return origins + np.maximum(tmin, 0)[:, None] * d
+
+
+def origin_adjoint(box: Box, origins: np.ndarray, dirs: np.ndarray, at_entry: np.ndarray):
+    """dJ/d(origin) from dJ/dx at each ray's entry point x = o + t(o) d: a ray that starts
+    outside the box enters it on a wall of normal n, and x slides on that wall as o moves,
+    dx/do = I - d n^T / (d . n)."""
+    d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (np.asarray(box.lo, float) - origins) / d
+        t2 = (np.asarray(box.hi, float) - origins) / d
+    near = np.where(np.isnan(np.minimum(t1, t2)), -np.inf, np.minimum(t1, t2))
+    wall = near.argmax(axis=1)
+    rows = np.arange(len(d))
+    out = at_entry.copy()
+    outside = near[rows, wall] > 0
+    slide = (at_entry * d).sum(1) / d[rows, wall]
+    out[rows[outside], wall[outside]] -= slide[outside]
+    return out
 
 
 def traced_loss(env, status, velocity, targets, weights=None, space="srgb", group=1):
@@ -286,8 +305,8 @@ class GradientEngine:
             grad = np.zeros(n_par + 1, tr.dtype)
             items = size // tr.lanes
             partial = np.zeros(max(items * self.n_shared, 1), tr.dtype)
-            # x, y, z, checkpoint gap, adjoint growth
-            back = [np.empty(size, tr.dtype) for _ in range(5)]
+            # x, y, z, checkpoint gap, adjoint growth, dJ/dx at the entry
+            back = [np.empty(size, tr.dtype) for _ in range(8)]
             # continuous: from the last state; discrete: replayed from the entry and checkpoints
             start = [*last, *outs[3:6]] if self.adjoint == "continuous" else [*o, *d]
             steps_back = steps_to_reverse(lat, st, mu[idx])
@@ -305,13 +324,15 @@ class GradientEngine:
             ]
             if self.adjoint == "discrete":
                 args.append(self._scratch_buffer(q, size))
-            args += [Out(back[3]), tr.dtype(self.growth_max), Out(back[4]), *tr.skip_args]
+            args += [Out(back[3]), tr.dtype(self.growth_max), *[Out(b) for b in back[4:]]]
+            args += tr.skip_args
             launch = tr.enqueue(self._k_adjoint, items, args, q)
             jobs.append((launch, idx, grad, partial, back, items))
         total = np.zeros(n_par)
         back_pos = np.empty((n, 3))
         gap = np.empty(n)
         growth = np.empty(n)
+        origin_grad = np.zeros((n, 3))
         for launch, idx, grad, partial, back, items in jobs:
             launch.finish()
             total += grad[:n_par]
@@ -323,10 +344,13 @@ class GradientEngine:
             back_pos[idx] = np.stack(back[:3], axis=1)[: len(idx)]
             gap[idx] = back[3][: len(idx)]
             growth[idx] = back[4][: len(idx)]
+            origin_grad[idx] = np.stack(back[5:], axis=1)[: len(idx)]
         entry = box_entry(self.box, origins, dirs)
         drift = np.maximum(np.linalg.norm(back_pos - entry, axis=1), gap)
         drift = np.where(exited, drift, 0.0)
         if not np.isfinite(loss) or not np.all(np.isfinite(total)):
             raise FloatingPointError("non-finite loss or gradient")
         growth = np.where(exited, growth, 1.0)
-        return GradientResult(loss, total, rad, status, drift, steps, growth)
+        origin_grad = origin_adjoint(self.box, origins, dirs, origin_grad)
+        origin_grad[~exited] = 0.0
+        return GradientResult(loss, total, rad, status, drift, steps, growth, origin_grad)

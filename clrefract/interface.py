@@ -227,6 +227,7 @@ class InterfaceEngine:
                 continue
             grad = np.zeros(n_par + 1, tr.dtype)
             geta = np.empty(len(idx) * n_int, tr.dtype)
+            gorig = np.empty(len(idx) * 3, tr.dtype)
             cl = tr.runtime.cl
             gbuf = cl.Buffer(
                 tr.runtime.context,
@@ -239,21 +240,24 @@ class InterfaceEngine:
                 *tr.columns(mu[idx], "adjoints"),
                 gbuf,
                 Out(geta),
+                Out(gorig),
             ]
             launch = tr.launch(tr.kernels.interface_adjoint, len(idx), args, q)
             launch.hold(cl.enqueue_copy(q, grad, gbuf, is_blocking=False))
-            grads.append((launch, grad, geta))
+            grads.append((launch, idx, grad, geta, gorig))
         total = np.zeros(n_par)
-        for launch, grad, geta in grads:
+        n = len(origins)
+        origin_grad = np.zeros((n, 3))
+        for launch, idx, grad, geta, gorig in grads:
             launch.finish()
             total += grad[:n_par]
             off = self.field.shared_offset
             total[off : off + n_int] += geta.reshape(-1, n_int).astype(np.float64).sum(0)
+            origin_grad[idx] = gorig.reshape(-1, 3)
         if not np.isfinite(loss) or not np.all(np.isfinite(total)):
             raise FloatingPointError("non-finite loss or gradient")
-        n = len(origins)
         return GradientResult(
-            loss, total, rad, t.status, np.zeros(n), int(t.steps.sum()), np.ones(n)
+            loss, total, rad, t.status, np.zeros(n), int(t.steps.sum()), np.ones(n), origin_grad
         )
 
 

@@ -209,11 +209,12 @@ class ShardedEngine:
                     )
                     # each chunk's loss is a mean over its own rays: weight it by its share
                     leaf[:n_par], leaf[n_par] = r.grad * (m / n), r.loss * (m / n)
-                    rays.append((j, r.radiance, r.status, r.drift, r.growth, r.steps))
+                    grad_o = r.origin_grad * (m / n)
+                    rays.append((j, r.radiance, r.status, r.drift, r.growth, r.steps, grad_o))
                 except FloatingPointError:
                     # not raised here alone: the NaN reaches every rank through the sum
                     leaf[:] = np.nan
-                    rays.append((j, None, None, None, None, 0))
+                    rays.append((j, None, None, None, None, 0, None))
             leaves[(j, 1)] = leaf
         mine = subtrees(owned(self.ranks.rank, self.ranks.size, c), c)
         sums = [tree_sum(a, w, leaves) for a, w in mine]
@@ -224,9 +225,9 @@ class ShardedEngine:
         if not np.all(np.isfinite(total)):
             raise FloatingPointError("non-finite loss or gradient")
         rays.sort(key=lambda item: item[0])
-        cat = [np.concatenate([item[k] for item in rays]) for k in (1, 2, 3, 4)]
+        cat = [np.concatenate([item[k] for item in rays]) for k in (1, 2, 3, 4, 6)]
         steps = sum(item[5] for item in rays)
-        return GradientResult(float(total[n_par]), total[:n_par], *cat[:3], steps, cat[3])
+        return GradientResult(float(total[n_par]), total[:n_par], *cat[:3], steps, *cat[3:])
 
     def gather(self, mine, sums, length, rays):
         """Every rank's subtree sums (Allgatherv of the float64 vectors) and per-ray results

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .calibrate import REGISTRATION_FILE
+from .calibrate import CENTRES_FILE, REGISTRATION_FILE
 from .cameras import frame_stem
 from .imageio import atomic_path
 from .metrics import psnr_ssim
@@ -73,6 +73,10 @@ def write_html_report(
     registered = _json_file(kept, notes) if kept.is_file() else None
     if registered and registered.get("found"):
         parts.append(_section("Registration", _registration_html(registered["found"], notes)))
+    moved = run / CENTRES_FILE
+    centres = _json_file(moved, notes) if moved.is_file() else None
+    if centres and centres.get("views"):
+        parts.append(_section("Camera centres", _centres_html(centres, notes)))
     parts.append(_section("Settings (config.toml)", f"<pre>{html.escape(settings)}</pre>"))
     if notes:
         items = "".join(f"<li>{html.escape(n)}</li>" for n in notes)
@@ -328,6 +332,34 @@ def _registration_figure(found: dict) -> bytes | None:
     axes[0].set(xlabel="view", ylabel="exposure_scale", title="exposure found")
     axes[1].plot(turns, ".")
     axes[1].set(xlabel="view", ylabel="degrees", title="camera turned by")
+    return _fig_png(fig)
+
+
+def _centres_html(found: dict, notes: list[str]) -> str:
+    """Where the fit moved the training cameras (fit --camera-centres fitted)."""
+    shifts = [v["shift_px"] for v in found["views"]]
+    rows = (
+        ("views moved", str(len(shifts))),
+        ("RMS move (mm)", _num(found["rms_offset_mm"])),
+        ("largest move (pixels at the object)", _num(max(shifts), 3)),
+        ("held-out views", found["held_out_views"]),
+    )
+    table = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
+    return f"<table>{table}</table>" + _figure_section(
+        lambda: _centres_figure(found), notes, "camera centres"
+    )
+
+
+def _centres_figure(found: dict) -> bytes | None:
+    uv = np.array([v["right_up_mm"] for v in found["views"]]) / found["footprint_mm"]
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(4, 4), layout="constrained")
+    ax.axhline(0, color="#bbb", lw=0.8)
+    ax.axvline(0, color="#bbb", lw=0.8)
+    ax.plot(uv[:, 0], uv[:, 1], ".")
+    r = max(float(np.abs(uv).max()) * 1.1, 1e-3)
+    ax.set(xlim=(-r, r), ylim=(-r, r), aspect="equal", title="each camera's move")
+    ax.set(xlabel="right (pixels at the object)", ylabel="up (pixels at the object)")
     return _fig_png(fig)
 
 

@@ -92,7 +92,8 @@ inline void adjoint_step(FIELD_PARAMS, __global REAL *grad FIELD_ACC_PARAM, cons
         __global const REAL *muy, __global const REAL *muz, __global REAL *grad,               \
         __global REAL *partial, __global REAL *bx, __global REAL *by, __global REAL *bz,       \
         const int max_steps, const int ckpt_every, __global const REAL *ckpt,                  \
-        __global REAL *snap, const REAL growth_max, __global REAL *growth SKIP_ARG)
+        __global REAL *snap, const REAL growth_max, __global REAL *growth, __global REAL *oax,  \
+        __global REAL *oay, __global REAL *oaz SKIP_ARG)
 
 /* worst: largest distance from a checkpoint when the ray reached it */
 #define ADJOINT_RAY_BEGIN                                                                      \
@@ -117,9 +118,13 @@ inline void adjoint_step(FIELD_PARAMS, __global REAL *grad FIELD_ACC_PARAM, cons
             alive = SEL(alive, RV(0), (active) && m2 > g2);                                    \
     }
 
+/* oa: dJ/dx at the entry, lambda = -nu (0 where the cap cut the ray: not its origin's) */
 #define ADJOINT_RAY_END                                                                        \
     VSTORE(x, i, bx); VSTORE(y, i, by); VSTORE(z, i, bz); VSTORE(worst, i, snap);              \
     VSTORE(sqrt(grown), i, growth);                                                            \
+    VSTORE(SEL(RV(0), -nx, alive > RV(0)), i, oax);                                            \
+    VSTORE(SEL(RV(0), -ny, alive > RV(0)), i, oay);                                            \
+    VSTORE(SEL(RV(0), -nz, alive > RV(0)), i, oaz);                                            \
     FIELD_ACC_FLUSH(grad, partial, i)
 
 #ifndef SKIP_EMPTY

@@ -83,7 +83,8 @@ __kernel void adjoint_discrete(FIELD_PARAMS, const REAL h, __global const REAL *
                                __global REAL *bz, const int max_steps, const int ckpt_every,
                                __global const REAL *ckpt, __global REAL *scratch,
                                __global REAL *snap, const REAL growth_max,
-                               __global REAL *growth) {
+                               __global REAL *growth, __global REAL *oax,
+                               __global REAL *oay, __global REAL *oaz) {
     const size_t i = get_global_id(0);
     const size_t col = get_global_size(0) * LANES;
     const int K = ckpt_every;
@@ -167,5 +168,9 @@ __kernel void adjoint_discrete(FIELD_PARAMS, const REAL h, __global const REAL *
     }
     VSTORE(ex, i, bx); VSTORE(ey, i, by); VSTORE(ez, i, bz); VSTORE(worst, i, snap);
     VSTORE(sqrt(grown), i, growth);
+    /* dJ/dx at the entry (0 where the cap cut the ray: not its origin's) */
+    VSTORE(SEL(RV(0), pb[0], alive > RV(0)), i, oax);
+    VSTORE(SEL(RV(0), pb[1], alive > RV(0)), i, oay);
+    VSTORE(SEL(RV(0), pb[2], alive > RV(0)), i, oaz);
     FIELD_ACC_FLUSH(grad, partial, i);
 }

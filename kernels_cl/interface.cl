@@ -650,14 +650,15 @@ __kernel void interface_trace(FIELD_PARAMS, const REAL lip, const int n,
 }
 
 /* The adjoint of one ray's exit direction (mu = dJ/d dir) back to phi's parameters (grad,
- * atomic adds) and the index's INT_N coefficients (geta[i * INT_N + j]). */
+ * atomic adds), the index's INT_N coefficients (geta[i * INT_N + j]) and the ray's origin
+ * (gorig[3 i + k], dJ/do: a camera centre's share). */
 __kernel void interface_adjoint(FIELD_PARAMS, const REAL lip, const int n,
                                 __global const REAL *ox, __global const REAL *oy,
                                 __global const REAL *oz, __global const REAL *dx,
                                 __global const REAL *dy, __global const REAL *dz,
                                 __global const REAL *mux, __global const REAL *muy,
                                 __global const REAL *muz, __global REAL *grad,
-                                __global REAL *geta) {
+                                __global REAL *geta, __global REAL *gorig) {
     const int i = get_global_id(0);
     if (i >= n) return;
     SDF_EVENTS
@@ -739,6 +740,10 @@ __kernel void interface_adjoint(FIELD_PARAMS, const REAL lip, const int n,
         ax = a_p;
     }
     for (int j = 0; j < INT_N; ++j) geta[i * INT_N + j] = acc[j];
+    /* the first segment is straight in air: its start moves the line, not the direction */
+    gorig[3 * i] = ax.x;
+    gorig[3 * i + 1] = ax.y;
+    gorig[3 * i + 2] = ax.z;
 }
 
 /* phi and its gradient at points (the device check against the NumPy reference). */

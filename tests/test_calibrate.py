@@ -306,6 +306,11 @@ def test_a_fit_registers_what_its_dataset_needs_and_its_readers_apply_it(rotated
     assert scores[0] > scores[1] + 3, scores
     page = (run / "report.html").read_text()  # what it found, beside the scores
     assert "<h2>Registration</h2>" in page and "registration figure failed" not in page
+    # a real capture's camera centres are fitted with the field (camera_centres = "auto")
+    assert 'camera_centres = "fitted"' in (run / "config.toml").read_text()
+    moved = json.loads((run / "camera_centres.json").read_text())["views"]
+    assert moved and max(v["shift_px"] for v in moved) > 0
+    assert "<h2>Camera centres</h2>" in page and "camera centres figure failed" not in page
     results = json.loads((run / "results.json").read_text())
     assert main(["-q", "eval", str(run), "--out", str(tmp_path / "eval")]) == 0
     scored = json.loads((tmp_path / "eval" / "eval.json").read_text())
@@ -313,6 +318,8 @@ def test_a_fit_registers_what_its_dataset_needs_and_its_readers_apply_it(rotated
     off = tmp_path / "off"
     assert main([*fit, "--out", str(off), "--register", "off"]) == 0
     assert not (off / "registration.json").exists()
+    assert 'camera_centres = "recorded"' in (off / "config.toml").read_text()
+    assert not (off / "camera_centres.json").exists()
     unregistered = json.loads((off / "results.json").read_text())["test_psnr"]
     assert results["test_psnr"] > unregistered + 3, (results["test_psnr"], unregistered)
 

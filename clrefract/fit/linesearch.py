@@ -74,9 +74,9 @@ def level_set_step(fit, bound) -> dict:
 
 
 def tame_rays(fit, bound, rays: np.ndarray):
-    """The loss and gradient of training rays, and which of them exit with an adjoint
-    growth of at most keep_growth."""
-    first = fit.objective.loss_and_grad(bound.engine, rays)
+    """The loss and gradient of training rays (fitted camera centres moved by it), and which
+    of them exit with an adjoint growth of at most keep_growth."""
+    first = fit.objective.loss_and_grad(bound.engine, rays, step=fit.it)
     return first, (first.status == Status.EXITED) & (first.growth <= fit.cfg.keep_growth)
 
 

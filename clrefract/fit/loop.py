@@ -77,6 +77,7 @@ def train(fit, until: int | None = None) -> dict:
     fit.record.update(fit.optimizer.finish(fit))
     fit.record["narrowing"] = judge_narrowing(fit)  # may keep the earlier width's field.npz
     fit.out.save_field(fit.field)
+    fit.write_centres()
     return report(fit)
 
 

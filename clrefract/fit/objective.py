@@ -20,10 +20,16 @@ def loss_space(setting: str, ds) -> str:
 class Objective:
     """Losses of a field's rays against the training pixels (`cfg.loss`'s colour space)."""
 
-    def __init__(self, rays: TrainingRays, loss_space: str, batch: int, seed: int):
+    def __init__(self, rays: TrainingRays, loss_space: str, batch: int, seed: int, centres=None):
         self.rays, self.space = rays, loss_space
         self.batch, self.seed = batch, seed
+        self.centres = centres  # centres.CameraCentres where the cameras' centres are fitted
         self._held_idx = None
+
+    def origins(self, idx: np.ndarray) -> np.ndarray:
+        """The rays' origins, from the cameras' centres as fitted so far."""
+        o = self.rays.origins[idx]
+        return o if self.centres is None else o + self.centres.offsets(idx)
 
     def _compared(self, idx: np.ndarray, group: int = 1) -> np.ndarray:
         """The rays that stand for idx: under the srgb420 loss, whole 2 x 2 blocks (as many
@@ -37,7 +43,7 @@ class Objective:
 
         r = self.rays
         idx = self._compared(idx)
-        t = tracer.trace(r.origins[idx], r.dirs[idx])
+        t = tracer.trace(self.origins(idx), r.dirs[idx])
         loss, _, radiance = traced_loss(
             r.env, t.status, t.direction, r.rgb[idx], r.weights[idx], self.space
         )
@@ -46,15 +52,21 @@ class Objective:
     def loss(self, tracer, idx: np.ndarray) -> float:
         return self.render(tracer, idx)[0]
 
-    def loss_and_grad(self, engine, idx: np.ndarray, it: int | None = None, group: int = 1):
+    def loss_and_grad(
+        self, engine, idx: np.ndarray, it: int | None = None, group: int = 1, step=None
+    ):
         """The loss and adjoint gradient of rays idx; against the images and environment
-        blurred as at iteration `it` (None: sharp)."""
+        blurred as at iteration `it` (None: sharp). `step`: the training step whose gradient
+        this is, which moves fitted camera centres (None: they stay)."""
         r = self.rays
         idx = self._compared(idx, group)
         env, targets = r.blurred(it) if it is not None else (r.env, r.rgb)
-        return engine.loss_and_grad(
-            r.origins[idx], r.dirs[idx], targets[idx], env, r.weights[idx], group
+        res = engine.loss_and_grad(
+            self.origins(idx), r.dirs[idx], targets[idx], env, r.weights[idx], group
         )
+        if self.centres is not None and step is not None and res.origin_grad is not None:
+            self.centres.step(idx, res.origin_grad, step)
+        return res
 
     def held_out_idx(self) -> np.ndarray:
         """A fixed batch of the held-out views' rays, most through their masks (elsewhere

@@ -56,7 +56,7 @@ class AdamSteps:
         cfg, bound = fit.cfg, fit.bound
         idx, side = fit.rays.batch(fit.it)
         t0 = time.perf_counter()
-        r = fit.objective.loss_and_grad(bound.engine, idx, fit.it, side * side)
+        r = fit.objective.loss_and_grad(bound.engine, idx, fit.it, side * side, step=fit.it)
         reg, greg = bound.field.regularizer(bound.params)
         grad = r.grad + cfg.reg * greg + fit.kind.extra_gradient(cfg, bound.params)
         if bound.free is not None:
@@ -244,7 +244,7 @@ class SmoothedDescent(AdamSteps):
         field = bound.field
         idx, side = fit.rays.batch(fit.it)
         t0 = time.perf_counter()
-        r = fit.objective.loss_and_grad(bound.engine, idx, fit.it, side * side)
+        r = fit.objective.loss_and_grad(bound.engine, idx, fit.it, side * side, step=fit.it)
         reg, greg = field.regularizer(bound.params)
         grad = r.grad + cfg.reg * greg
         if bound.free is not None:

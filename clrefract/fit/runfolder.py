@@ -16,16 +16,24 @@ from pathlib import Path
 
 import numpy as np
 
-from ..calibrate import REGISTRATION_FILE
+from ..calibrate import CENTRES_FILE, REGISTRATION_FILE
 from ..errors import ClrefractError
 from ..fields.base import Box
 from ..imageio import atomic_path
 from ..provenance import command, git_state, now, started, version
+from .centres import KEY as CENTRES_KEY
 from .config import FitConfig, to_toml
 from .configure import load_config
 
 # what a run folder holds that a new run would overwrite
-RUN_FILES = ("checkpoint.npz", "field.npz", "results.json", "start.json", "run.json")
+RUN_FILES = (
+    "checkpoint.npz",
+    "field.npz",
+    "results.json",
+    "start.json",
+    "run.json",
+    CENTRES_FILE,
+)
 # what the start of a new run writes, removed again when the start fails
 START_FILES = ("config.toml", "metrics.jsonl", "init.json", REGISTRATION_FILE, *RUN_FILES)
 # run.json's record of where the run came from, kept when its other keys are rewritten
@@ -67,6 +75,7 @@ class Checkpoint:
     adam: dict
     eta_max: float | None = None  # None in runs that predate it
     guide: dict = field(default_factory=dict)  # a hash grid's level set (guide_*)
+    centres: dict = field(default_factory=dict)  # fitted camera centres (centres_*)
 
 
 class RunFolder:
@@ -173,6 +182,7 @@ class RunFolder:
                 best_eta_max=best.eta_max or ckpt.eta_max,
                 **ckpt.adam,
                 **ckpt.guide,
+                **ckpt.centres,
             )
 
     def checkpoint(self) -> Checkpoint:
@@ -192,6 +202,7 @@ class RunFolder:
                     adam={k: z[k] for k in ("adam_m", "adam_v", "adam_t")},
                     eta_max=tops[0],
                     guide={k: z[k] for k in z.files if k.startswith("guide_")},
+                    centres={k: z[k] for k in z.files if k.startswith(CENTRES_KEY)},
                 )
         except FileNotFoundError:
             raise ClrefractError(f"{path}: no checkpoint to resume from") from None

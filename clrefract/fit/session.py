@@ -11,8 +11,11 @@ from dataclasses import replace
 from pathlib import Path
 
 from .. import start_losses
+from ..calibrate import REGISTRATION_FILE
+from ..dataset import read_scene
 from ..errors import ClrefractError
 from ..imageio import ensure_out_dir
+from .centres import centres_setting
 from .config import FitConfig
 from .kinds import candidate_config, graded_candidate, guide_config, kind_of
 from .registration import register_run, share_registration
@@ -47,6 +50,7 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
     had = {name for name in START_FILES if (folder / name).exists()}
     try:
         register_run(dataset, folder, cfg, stream or sys.stderr)
+        say_centres(dataset, folder, cfg, stream or sys.stderr)
         return start_run(dataset, folder, cfg, stream)
     except BaseException:
         # a start that failed (or was interrupted) leaves no run behind, only its search's
@@ -63,6 +67,18 @@ def prepare_fit(dataset: Path, out: Path, cfg: FitConfig, resume: bool = False, 
         if fresh_folder and not any(folder.path.iterdir()):
             folder.path.rmdir()
         raise
+
+
+def say_centres(dataset: Path, folder: RunFolder, cfg: FitConfig, stream) -> None:
+    """Settle camera_centres = "auto" for the run and its candidates, saying where it fits
+    them."""
+    chosen = centres_setting(cfg, read_scene(Path(dataset)), (folder / REGISTRATION_FILE).is_file())
+    said, cfg.camera_centres = cfg.camera_centres, chosen
+    if chosen != said and chosen == "fitted":
+        stream.write(
+            "camera centres: fitted with the field, as a real capture's need "
+            "(--camera-centres recorded: as the dataset states them)\n"
+        )
 
 
 def start_run(

@@ -8,10 +8,12 @@ import sys
 
 import numpy as np
 
-from ..calibrate import run_corrections
+from ..calibrate import CENTRES_FILE, run_corrections
 from ..dataset import Dataset, box_of
 from ..errors import ClrefractError
+from ..resolution import pixel_footprint_mm
 from .binding import Bound, engine_for, forward_settings
+from .centres import CameraCentres, centres_setting
 from .config import FitConfig
 from .kinds import interface_step_scale, kind_named, kind_of
 from .loop import train
@@ -54,7 +56,19 @@ class Fit:
         if cfg.loss == "srgb420":  # the blocks' colour as stored, not the decoder's smear
             self.ds.train_chroma = "stored"
         self.rays = TrainingRays(self.ds, cfg)
-        self.objective = Objective(self.rays, cfg.loss, cfg.batch, cfg.seed)
+        # settled where a run starts (session.py), else here; recorded in config.toml
+        cfg.camera_centres = centres_setting(cfg, self.ds.scene, corrections is not None)
+        centres = None
+        if cfg.camera_centres == "fitted":
+            centres = CameraCentres(
+                self.ds.train,
+                self.rays.view_of,
+                self.rays.held,
+                pixel_footprint_mm(self.ds.train, np.add(self.box.lo, self.box.hi) / 2),
+                cfg.lr_centres,
+                lambda it: cfg.lr_final ** (it / cfg.iterations),
+            )
+        self.objective = Objective(self.rays, cfg.loss, cfg.batch, cfg.seed, centres)
         self.hulls = Hulls(self.ds, cfg, self.rays)
         self.it = 0
         self.init_info: dict = {}
@@ -163,7 +177,7 @@ class Fit:
     def size_from_images(self) -> None:
         """Resolve res = 0 / n_max = 0 for the current box: one cell per pixel footprint."""
         from ..limits import check_grid
-        from ..resolution import cells_for, pixel_footprint_mm
+        from ..resolution import cells_for
 
         auto = [n for n in ("res", "n_max") if getattr(self.cfg, n) == 0]
         if not auto:
@@ -241,6 +255,15 @@ class Fit:
             self.best = Best(loss, self.it, judged.params.copy(), self.eta_max)
         return loss
 
+    def write_centres(self) -> None:
+        """camera_centres.json: where the fit moved each training camera (fitted centres)."""
+        centres = self.objective.centres
+        if centres is None or not self.out.writes:
+            return
+        train = {id(cam): f"{src.name}: frames[{k}]" for src, k, cam in self.ds.frames()}
+        names = [(train[id(cam)], cam.file_path) for cam in self.ds.train]
+        self.out.write_json(CENTRES_FILE, centres.report(names))
+
     # --- checkpoints --------------------------------------------------------------------------
     def save_checkpoint(self) -> None:
         self.out.save_checkpoint(
@@ -251,6 +274,7 @@ class Fit:
                 best=self.best,
                 adam=self.optimizer.state(),
                 eta_max=self.eta_max,
+                centres=self.objective.centres.state() if self.objective.centres else {},
             )
         )
 
@@ -273,3 +297,5 @@ class Fit:
         self.best = ckpt.best
         self.optimizer = optimizer_for(self, ckpt)
         self.optimizer.restore(self, ckpt)
+        if self.objective.centres is not None:
+            self.objective.centres.restore(ckpt.centres)
