@@ -1119,28 +1119,28 @@ def build_parser(fit_flags: bool = True) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = _joined_box(list(sys.argv[1:] if argv is None else argv))
     args = build_parser(fit_flags="fit" in argv).parse_args(argv)
-    from .log import configure
+    from .log import configured
     from .provenance import begin, end
 
-    configure(quiet=args.quiet, verbose=args.verbose)
-    begin(argv)  # run.json records the command and its start
-    if args.verbose:
-        from .runtime import set_verbose
+    with configured(quiet=args.quiet, verbose=args.verbose):
+        begin(argv)  # run.json records the command and its start
+        if args.verbose:
+            from .runtime import set_verbose
 
-        set_verbose(True)
-    try:
-        return args.func(args)
-    except ClrefractError as exc:
-        print(f"clrefract: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("clrefract: interrupted", file=sys.stderr)
-        return 130
-    except BrokenPipeError:  # `clrefract ... | head`: the reader left, as with any Unix tool
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no flush error at exit
-        return 141
-    finally:
-        end()
+            set_verbose(True)
+        try:
+            return args.func(args)
+        except ClrefractError as exc:
+            print(f"clrefract: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print("clrefract: interrupted", file=sys.stderr)
+            return 130
+        except BrokenPipeError:  # `clrefract ... | head`: the reader left, as with any tool
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no flush error
+            return 141
+        finally:
+            end()
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from contextlib import contextmanager
 
 from tqdm import tqdm
 
@@ -54,6 +55,20 @@ def configure(quiet: bool = False, verbose: bool = False) -> None:
         handler.setFormatter(_Format())
         logger.addHandler(handler)
     logger.propagate = False
+
+
+@contextmanager
+def configured(quiet: bool = False, verbose: bool = False):
+    """configure() for one command: an in-process caller (a test, a notebook) has its bars
+    and level back after it."""
+    global _bars
+    saved = _bars, logger.level
+    configure(quiet, verbose)
+    try:
+        yield
+    finally:
+        _bars = saved[0]
+        logger.setLevel(saved[1])
 
 
 class LogStream:

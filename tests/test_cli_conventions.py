@@ -102,6 +102,24 @@ def test_quiet_and_verbose_go_before_or_after_the_command():
         p.parse_args(["--quiet", "--verbose", "devices"])
 
 
+def test_a_quiet_command_leaves_the_callers_bars_and_level_as_they_were(capsys):
+    """`main([..., "-q"])` in a process that goes on (a test, a notebook): its progress bars
+    and log level come back afterwards. A quiet call once hid every later bar in its pytest
+    worker, and a start's progress test failed by the order tests ran in."""
+    import logging
+
+    from clrefract.log import Progress
+
+    logger = logging.getLogger("clrefract")
+    level = logger.level
+    assert main(["-q", "devices"]) == 0
+    capsys.readouterr()
+    bar = Progress(3, "after", stream=io.StringIO())
+    assert not bar.disable
+    bar.close()
+    assert logger.level == level
+
+
 def test_render_orbit_writes_frames_and_a_gif(tmp_path, capsys):
     out = tmp_path / "orbit"
     args = ["render", "--field", "sphere", "--orbit", "4", "--res", "12", "--step", "2"]
