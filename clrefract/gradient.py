@@ -79,11 +79,8 @@ def origin_adjoint(box: Box, origins: np.ndarray, dirs: np.ndarray, at_entry: np
     outside the box enters it on a wall of normal n, and x slides on that wall as o moves,
     dx/do = I - d n^T / (d . n)."""
     d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = (np.asarray(box.lo, float) - origins) / d
-        t2 = (np.asarray(box.hi, float) - origins) / d
-    near = np.where(np.isnan(np.minimum(t1, t2)), -np.inf, np.minimum(t1, t2))
-    wall = near.argmax(axis=1)
+    near = box.slabs(origins, d)[0]
+    wall = near.argmax(axis=1)  # the wall whose slab the ray enters last: the box's
     rows = np.arange(len(d))
     out = at_entry.copy()
     outside = near[rows, wall] > 0

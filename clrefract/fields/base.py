@@ -32,13 +32,18 @@ class Box:
         """(near, far): the ray parameters t where each ray o + t d enters and leaves the box
         (slabs; far <= near for a miss). A direction parallel to a wall from inside its slab
         bounds nothing on that axis."""
+        lo, hi = self.slabs(origins, dirs)
+        return lo.max(axis=1), hi.min(axis=1)
+
+    def slabs(self, origins: np.ndarray, dirs: np.ndarray):
+        """(n, 3) each: per axis, the ray parameters t where each ray o + t d crosses the
+        box's two walls, nearer first; a direction parallel to an axis bounds nothing there
+        (-inf, inf)."""
         with np.errstate(divide="ignore", invalid="ignore"):
             t1 = (np.asarray(self.lo, float) - origins) / dirs
             t2 = (np.asarray(self.hi, float) - origins) / dirs
         lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
-        near = np.where(np.isnan(lo), -np.inf, lo).max(axis=1)
-        far = np.where(np.isnan(hi), np.inf, hi).min(axis=1)
-        return near, far
+        return np.where(np.isnan(lo), -np.inf, lo), np.where(np.isnan(hi), np.inf, hi)
 
     def geometry(self, nodes=(0, 0, 0)) -> np.ndarray:
         """What the kernels read of the box and of a node grid over it (kernels_cl/common.h),
