@@ -16,6 +16,11 @@ translation of all the views' shifts) is taken out after each step: the recorded
 on average. Along its axis a camera moves the object's scale by the shift over the distance, a
 part of a pixel that the images hardly see (camera_positions.py), so that axis stays.
 Held-out views keep their recorded centres: their losses judge the field.
+
+The gate stops a centre where its gradient sinks into its noise, a tenth of a pixel or so
+from its optimum on noisy photographs. So at SOLVES_AT of the run every view's centre is also
+solved against the field as it stands, with all of the view's pixels near the object
+(view_offsets.py's least squares), and the field goes on from the solved centres.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ KEY = "centres_"  # checkpoint.npz keys
 BETA = 0.98  # the gradient's running moments weigh about the last 1 / (1 - BETA) steps
 T_MOVE = 3.0  # t-statistic of a view's mean gradient at which its centre starts to move
 MIN_SEEN = 8  # steps' worth of gradients before any centre moves (a spread to test against)
+SOLVES_AT = (0.25, 0.5)  # shares of the run after which every centre is solved outright
 
 
 def centres_setting(cfg, scene, registered: bool) -> str:
@@ -76,6 +82,24 @@ class CameraCentres:
         self.v = BETA * self.v + (1 - BETA) * grad * grad
         self.uv -= self.lr * self.decay(it) * self.moves()
         self._remove_common()
+
+    def solve_due(self, it: int, iterations: int) -> bool:
+        """Whether the centres are solved outright after step `it` of `iterations`."""
+        return it in {max(round(share * iterations), 1) for share in SOLVES_AT}
+
+    def moving(self) -> np.ndarray:
+        """The indices of the views whose centres move (not held out)."""
+        return np.flatnonzero(~self.frozen)
+
+    def take_solved(self, views: np.ndarray, right_up: np.ndarray) -> None:
+        """Move `views` by `right_up` (mm along their right and up axes, from where they
+        are), the common translation taken out; the gradients' moments start again, as
+        they were of the old centres."""
+        self.uv[views] += right_up
+        self._remove_common()
+        self.m[:] = 0.0
+        self.v[:] = 0.0
+        self.t = 0
 
     def moves(self) -> np.ndarray:
         """Each offset's step, a share of the rate towards its lower loss: 0 until its mean

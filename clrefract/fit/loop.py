@@ -46,6 +46,7 @@ def train(fit, until: int | None = None) -> dict:
                         fit.out.record_start_loss(start_val)
                         fit.optimizer.validated(fit, start_val)
                 row = fit.step()
+                fit.solve_centres()
                 val = fit.track_best()
                 if val is not None:
                     row["val_loss"] = val

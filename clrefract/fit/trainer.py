@@ -264,6 +264,29 @@ class Fit:
         names = [(train[id(cam)], cam.file_path) for cam in self.ds.train]
         self.out.write_json(CENTRES_FILE, centres.report(names))
 
+    def solve_centres(self) -> None:
+        """Where due (CameraCentres.solve_due), each moving view's centre solved against the
+        field as it stands (view_offsets.estimate_offsets)."""
+        from ..log import Progress
+        from ..view_offsets import estimate_offsets
+
+        centres = self.objective.centres
+        if centres is None or not centres.solve_due(self.it, self.cfg.iterations):
+            return
+        views = centres.moving()
+        with Progress(len(views), "camera centres", unit="view", stream=self.stream) as bar:
+            found = estimate_offsets(
+                self.ds, self.bound.tracer, views, self.cfg.mask_threshold, centres.world(),
+                progress=bar.update,
+            )  # fmt: skip
+        right_up = np.array([f.right_up_mm for f in found]).reshape(-1, 2)
+        centres.take_solved(views, right_up)
+        moved = np.sqrt(np.mean(np.sum(right_up**2, axis=1))) if len(views) else 0.0
+        self.stream.write(
+            f"camera centres: solved against the field after step {self.it}: moved "
+            f"{moved / centres.footprint:.3f} px (rms)\n"
+        )
+
     # --- checkpoints --------------------------------------------------------------------------
     def save_checkpoint(self) -> None:
         self.out.save_checkpoint(
