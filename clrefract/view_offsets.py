@@ -137,13 +137,14 @@ def estimate_offsets(
     threshold: float = 0.05,
     moved: np.ndarray | None = None,
     progress=None,
+    env: EnvMap | None = None,
 ) -> list[ViewOffset]:
     """Per training view (all, or those of the indices `views` into ds.train), the shift of
     the camera's centre in its image plane that minimises the sRGB loss of the field `tracer`
     traces against the photograph, on the pixels near the object. `moved`: (len(ds.train),
     3) shifts the centres already have (the shifts found are from there); `progress`: called
-    once a view."""
-    env = ds.envmap()
+    once a view; `env`: the panorama, where the caller holds it already (else read)."""
+    env = ds.envmap() if env is None else env
     views = range(len(ds.train)) if views is None else views
     indices = train_indices(ds)
     centre = (np.asarray(ds.box.lo) + np.asarray(ds.box.hi)) / 2
