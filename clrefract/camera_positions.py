@@ -42,7 +42,9 @@ def refine_positions(dataset, run, write: bool = False, runtime=None) -> dict:
     source = ds.root / ds.scene.train
     doc = read_json(source) if write else None  # unreadable: refused before any work
     model = load_model(run, ds, notes, runtime=runtime, cfg=cfg)
-    offsets = estimate_offsets(ds, model.tracer, threshold=cfg.mask_threshold)
+    if cfg.loss == "srgb420":  # as the run was fitted: colour per block, as stored
+        ds.train_chroma = "stored"
+    offsets = estimate_offsets(ds, model.tracer, threshold=cfg.mask_threshold, space=cfg.loss)
     moved = np.array([v.offset_mm for v in offsets])
     info: dict = {
         "dataset": str(ds.root),

@@ -16,7 +16,7 @@ from clrefract.fields.interface import InterfaceField, SphereInterface
 from clrefract.interface import InterfaceTracer
 from clrefract.realistic import TRUTH_FILE, parse_flaws
 from clrefract.synth import MakeOptions, make_dataset
-from clrefract.view_offsets import estimate_offsets
+from clrefract.view_offsets import BLUR_PX, MAX_NFEV, estimate_offsets
 
 POSE_MM = 1.0  # half a pixel at the object (48 x 48 views, 2.2 mm a pixel)
 
@@ -56,7 +56,14 @@ def test_the_true_sphere_takes_each_camera_back(moved):
     shift along the view is not sought: it scales the object by 0.5%)."""
     ds = Dataset(moved)
     field = SphereInterface((0.0, 0.0, 0.0), 20.0, 1.5, ds.box)
-    offsets = estimate_offsets(ds, InterfaceTracer(field, ds.box))
+    tracer = InterfaceTracer(field, ds.box)
+    launches = []
+    trace = tracer.trace
+    tracer.trace = lambda o, d: launches.append(len(o)) or trace(o, d)
+    offsets = estimate_offsets(ds, tracer)
+    # the views step together: a view's object pixels, then each round's first residuals
+    # and its iterations' two launches, then the last residuals (per view: 20 x 55 or so)
+    assert len(launches) <= len(ds.train) + len(BLUR_PX) * (1 + 2 * MAX_NFEV) + 2, launches
     truth = true_positions(moved)
     before = in_plane_errors(ds.train, truth)
     after = in_plane_errors(ds.train, truth, [v.offset_mm for v in offsets])
@@ -65,6 +72,27 @@ def test_the_true_sphere_takes_each_camera_back(moved):
     assert all(v.loss_after < v.loss_before for v in offsets)
     for v, cam in zip(offsets, ds.train, strict=True):  # in the image plane only
         assert abs(v.offset_mm @ cam.c2w[:3, 2]) < 1e-9
+
+
+def test_on_jpeg_frames_colour_is_compared_per_block_as_stored(tmp_path):
+    """4:2:0 JPEG frames: solved in the fit's srgb420 (luma per pixel, colour per 2 x 2 block
+    as the file stored it), the cameras come back closer than per pixel against the decoded
+    frames, whose smeared colour edges pull each view (measured: 0.038 mm and 0.091 mm left
+    of 0.79)."""
+    opt = MakeOptions(views=20, res=48, env_width=512, volume_res=16)
+    opt.realistic = parse_flaws(f"pose_mm={POSE_MM},jpeg=90")
+    make_dataset("sphere", tmp_path / "jpeg", opt)
+    truth = true_positions(tmp_path / "jpeg")
+    left = {}
+    for chroma, space in (("decoded", "srgb"), ("stored", "srgb420")):
+        ds = Dataset(tmp_path / "jpeg")
+        ds.train_chroma = chroma
+        field = SphereInterface((0.0, 0.0, 0.0), 20.0, 1.5, ds.box)
+        offsets = estimate_offsets(ds, InterfaceTracer(field, ds.box), space=space)
+        before = in_plane_errors(ds.train, truth)
+        left[space] = rms(in_plane_errors(ds.train, truth, [v.offset_mm for v in offsets]))
+    assert left["srgb420"] < 0.1 * rms(before), (rms(before), left)
+    assert left["srgb420"] < 0.6 * left["srgb"], left
 
 
 def sphere_run(run, box, res: int = 48) -> None:
@@ -175,9 +203,9 @@ def test_a_fit_of_centres_writes_them_and_resumes_as_if_uninterrupted(
     """`fit --camera-centres fitted`: camera_centres.json names each training view's move,
     which takes the in-plane errors (less their common part) below half of the recorded
     ones in 24 steps on a 24^3 grid (measured: 0.32; the solves after steps 6 and 12 moved
-    the centres by 0.79 mm and 0.1 mm, rms). A run
-    interrupted half way resumes with the centres, their moments and the solves done as the
-    checkpoint holds them, and solves nothing again."""
+    the centres by 0.79 mm and 0.1 mm, rms). A run interrupted between its solves resumes
+    with the centres and their moments as the checkpoint holds them, and solves once more:
+    the solve it had done is not repeated, the one it had not is not skipped."""
     import clrefract.fit as fitmod
     from clrefract.fit.centres import CameraCentres
 
@@ -200,7 +228,7 @@ def test_a_fit_of_centres_writes_them_and_resumes_as_if_uninterrupted(
     real_step = fitmod.Fit.step
 
     def step_then_interrupt(self):
-        if self.it == 15:
+        if self.it == 8:
             import os
             import signal
 
@@ -210,8 +238,8 @@ def test_a_fit_of_centres_writes_them_and_resumes_as_if_uninterrupted(
     monkeypatch.setattr(fitmod.Fit, "step", step_then_interrupt)
     solved.clear()
     assert fit(tmp_path / "part") == 2
-    assert "interrupted at iteration 16" in capsys.readouterr().err
-    assert len(solved) == 2
+    assert "interrupted at iteration 9" in capsys.readouterr().err
+    assert len(solved) == 1
     saved = dict(np.load(tmp_path / "part" / "checkpoint.npz"))
     resumed = {}
 
@@ -225,13 +253,13 @@ def test_a_fit_of_centres_writes_them_and_resumes_as_if_uninterrupted(
     solved.clear()
     assert fit(tmp_path / "part", "--resume") == 0
     capsys.readouterr()
-    assert not solved  # the solves were before the interruption
-    assert resumed.pop("at") == 16
+    assert len(solved) == 1  # after step 12 only
+    assert resumed.pop("at") == 9
     for key, value in resumed.items():
         np.testing.assert_array_equal(value, saved[key], err_msg=key)
-    assert np.abs(saved["centres_uv"]).max() > 0.05  # mm: the first 16 steps moved them
+    assert np.abs(saved["centres_uv"]).max() > 0.05  # mm: the first 9 steps moved them
     part = np.load(tmp_path / "part" / "checkpoint.npz")["centres_uv"]
-    assert np.abs(part - saved["centres_uv"]).max() > 0.01  # and the last 8 too
+    assert np.abs(part - saved["centres_uv"]).max() > 0.01  # and the last 15 too
     doc = json.loads((tmp_path / "full" / "camera_centres.json").read_text())
     assert 0 < len(doc["views"]) < len(Dataset(moved).train)  # held-out views keep theirs
     full = np.load(tmp_path / "full" / "checkpoint.npz")["centres_uv"]

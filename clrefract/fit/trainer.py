@@ -277,7 +277,7 @@ class Fit:
         with Progress(len(views), "camera centres", unit="view", stream=self.stream) as bar:
             found = estimate_offsets(
                 self.ds, self.bound.tracer, views, self.cfg.mask_threshold, centres.world(),
-                progress=bar.update, env=self.rays.env,
+                progress=bar.update, env=self.rays.env, space=self.cfg.loss,
             )  # fmt: skip
         right_up = np.array([f.right_up_mm for f in found]).reshape(-1, 2)
         centres.take_solved(views, right_up)
