@@ -225,3 +225,48 @@ def test_jpeg_frames_with_halved_chroma_choose_the_420_loss(real, lens_only, tmp
             cam, same = getattr(fit.ds, split)[0], getattr(plain, split)[0]
             moved = np.abs(fit.ds.image(cam) - plain.image(same)).max()
             assert (moved > 1e-3) == changed, (split, moved)
+
+
+def test_the_jpeg_loss_draws_macroblocks_and_fits(real, tmp_path, monkeypatch):
+    """`--loss jpeg`: its rays come in the aligned 16 x 16 macroblocks of the frames' files,
+    each with its view's gain and its coefficient's bins; the decoded photograph (its colour
+    as stored) is an image its file allows, one 5% brighter is not; and a short fit runs
+    through the blurred phase and the sharp one and records the loss."""
+    from clrefract.cli import main
+    from clrefract.dataset import frame_gain
+    from clrefract.fit.config import FitConfig
+    from clrefract.fit.rays import TrainingRays
+    from clrefract.loss import file_consistent
+
+    ds = Dataset(real)
+    ds.train_chroma = "stored"
+    rays = TrainingRays(ds, FitConfig())
+    anchors = np.random.default_rng(1).choice(len(rays.rgb), 2048, replace=False)
+    idx = rays.macroblocks(anchors)
+    blocks = idx.reshape(-1, 256)
+    view = rays.view_of[blocks]
+    local = blocks - rays.view_start[view]
+    w = rays.view_shape[view[:, 0], 1]
+    rows, cols = local // w[:, None], local % w[:, None]
+    assert len(blocks) == 8 and np.all(view == view[:, :1])
+    assert np.all(rows.min(1) % 16 == 0) and np.all(cols.min(1) % 16 == 0)
+    assert np.all(rows.max(1) - rows.min(1) == 15) and np.all(cols.max(1) - cols.min(1) == 15)
+    extra = rays.jpeg_columns(idx)
+    np.testing.assert_allclose(extra[:, :3], [frame_gain(ds.train[v]) for v in view.ravel()])
+    photo = rays.rgb[idx]
+    target = np.hstack([photo, extra])
+    # the frames are float32: their rounding is all that moves
+    np.testing.assert_allclose(file_consistent(photo, target), photo, rtol=1e-5, atol=1e-7)
+    brighter = photo * 1.05
+    moved = file_consistent(brighter, target)
+    assert np.abs(moved - brighter).max() > 0.01 * brighter.max()
+    sharp = []
+    real_columns = TrainingRays.jpeg_columns
+    monkeypatch.setattr(
+        TrainingRays, "jpeg_columns", lambda self, i: sharp.append(len(i)) or real_columns(self, i)
+    )
+    run = tmp_path / "run"
+    args = ["fit", str(real), "--out", str(run), "--field", "voxel", "--res", "8"]
+    assert main([*args, "--loss", "jpeg", "--iterations", "6", "--env-blur", "2", "--quiet"]) == 0
+    assert 0 < len(sharp) < 6 and all(n % 256 == 0 for n in sharp), sharp  # the sharp steps
+    assert 'loss = "jpeg"' in (run / "config.toml").read_text()
