@@ -38,6 +38,7 @@ XTOL = 1e-3
 PROBES = ((1, 0), (0, 1), (-1, 0), (0, -1))  # the central differences: +right, +up, -right, -up
 DAMPING = 1e-3  # Levenberg-Marquardt's first damping, relative to the Gauss-Newton diagonal
 MIN_PIXELS = 16  # fewer object pixels: the view is left as it is
+PROGRESS_PER_VIEW = 1 + len(BLUR_PX)
 
 
 @dataclass
@@ -157,10 +158,12 @@ def render(tracer, env: EnvMap, problems: list, shifts: list) -> list:
     return [p.residuals(r) for p, r in zip(problems, np.split(rad, ends), strict=True)]
 
 
-def solve_lockstep(tracer, env: EnvMap, problems: list) -> np.ndarray:
+def solve_lockstep(tracer, env: EnvMap, problems: list, progress=None) -> np.ndarray:
     """(len(problems), 2) shifts minimising each problem's squared residuals within its
     bound: Levenberg-Marquardt on central differences (half step STEP_PX footprints), the
-    views that have not converged stepping together, over the rounds of BLUR_PX."""
+    views that have not converged stepping together, over the rounds of BLUR_PX.
+    `progress`: called with the count of views each iteration finishes for its round."""
+    progress = progress or (lambda n: None)
     x = np.zeros((len(problems), 2))
     for blur in BLUR_PX:
         for p in problems:
@@ -196,9 +199,11 @@ def solve_lockstep(tracer, env: EnvMap, problems: list) -> np.ndarray:
                     damping[i] *= 4
                 if moved >= XTOL * (XTOL * problems[i].foot + float(np.linalg.norm(x[i]))):
                     still.append(i)
+            progress(len(live) - len(still))
             live = still
             if not live:
                 break
+        progress(len(live))
     return x
 
 
@@ -220,13 +225,15 @@ def estimate_offsets(
 ) -> list[ViewOffset]:
     """Per training view (all, or those of the indices `views` into ds.train), the shift of
     the camera's centre in its image plane that minimises the sRGB loss of the field `tracer`
-    traces against the photograph, on the pixels near the object. `moved`: (len(ds.train),
-    3) shifts the centres already have (the shifts found are from there); `progress`: called
-    once a view; `env`: the panorama, where the caller holds it already (else read); `space`:
-    the fit's loss space (srgb420: the frames' colour compared per 2 x 2 block, as ds reads
-    it with train_chroma "stored"; any other: sRGB per pixel)."""
+    traces against the photograph, on the pixels near the object.
+    moved: (len(ds.train), 3) shifts the centres already have (the shifts found are from
+    there); progress: called with counts, PROGRESS_PER_VIEW in all for each view (its
+    set-up, then each round); env: the panorama, where the caller holds it already (else
+    read); space: the fit's loss space (srgb420 and jpeg: the frames' colour compared per
+    2 x 2 block, as ds reads it with train_chroma "stored"; any other: sRGB per pixel)."""
     env = ds.envmap() if env is None else env
     views = range(len(ds.train)) if views is None else views
+    progress = progress or (lambda n=1: None)
     indices = train_indices(ds)
     centre = (np.asarray(ds.box.lo) + np.asarray(ds.box.hi)) / 2
     out, problems = [], {}
@@ -237,14 +244,15 @@ def estimate_offsets(
             c2w = cam.c2w.copy()
             c2w[:3, 3] += moved[v]
             cam = replace(cam, c2w=c2w)
-        if progress is not None:
-            progress()
+        progress()
         image = image.astype(np.float64)
         mask = object_pixels(tracer, cam, image, env, threshold)
         foot = footprint_mm(cam, centre)
         out.append(ViewOffset(f"{ds.scene.train}: frames[{k}]", cam.file_path, np.zeros(3),
                               np.zeros(2), foot, 0, 0, 0))  # fmt: skip
-        if mask.sum() >= MIN_PIXELS:
+        if mask.sum() < MIN_PIXELS:
+            progress(len(BLUR_PX))  # no rounds to solve
+        else:
             problems[n] = ViewProblem(
                 cam, image, weight, mask, env, MAX_SHIFT_PX * foot, foot, space
             )
@@ -252,7 +260,7 @@ def estimate_offsets(
     for p in probs:
         p.set_blur(0.0)
     before = render(tracer, env, probs, [np.zeros(2)] * len(probs))
-    shifts = solve_lockstep(tracer, env, probs)
+    shifts = solve_lockstep(tracer, env, probs, progress)
     for p in probs:
         p.set_blur(0.0)
     after = render(tracer, env, probs, list(shifts))

@@ -16,7 +16,7 @@ from clrefract.fields.interface import InterfaceField, SphereInterface
 from clrefract.interface import InterfaceTracer
 from clrefract.realistic import TRUTH_FILE, parse_flaws
 from clrefract.synth import MakeOptions, make_dataset
-from clrefract.view_offsets import BLUR_PX, MAX_NFEV, estimate_offsets
+from clrefract.view_offsets import BLUR_PX, MAX_NFEV, PROGRESS_PER_VIEW, estimate_offsets
 
 POSE_MM = 1.0  # half a pixel at the object (48 x 48 views, 2.2 mm a pixel)
 
@@ -60,7 +60,9 @@ def test_the_true_sphere_takes_each_camera_back(moved):
     launches = []
     trace = tracer.trace
     tracer.trace = lambda o, d: launches.append(len(o)) or trace(o, d)
-    offsets = estimate_offsets(ds, tracer)
+    counts = []
+    offsets = estimate_offsets(ds, tracer, progress=lambda n=1: counts.append(n))
+    assert sum(counts) == len(ds.train) * PROGRESS_PER_VIEW  # the bar ends full
     # the views step together: a view's object pixels, then each round's first residuals
     # and its iterations' two launches, then the last residuals (per view: 20 x 55 or so)
     assert len(launches) <= len(ds.train) + len(BLUR_PX) * (1 + 2 * MAX_NFEV) + 2, launches

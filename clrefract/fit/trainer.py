@@ -269,13 +269,14 @@ class Fit:
         """Where due (CameraCentres.solve_due), each moving view's centre solved against the
         field as it stands (view_offsets.estimate_offsets)."""
         from ..log import Progress
-        from ..view_offsets import estimate_offsets
+        from ..view_offsets import PROGRESS_PER_VIEW, estimate_offsets
 
         centres = self.objective.centres
         if centres is None or not centres.solve_due(self.it, self.cfg.iterations):
             return
         views = centres.moving()
-        with Progress(len(views), "camera centres", unit="view", stream=self.stream) as bar:
+        total = len(views) * PROGRESS_PER_VIEW  # each view's set-up and rounds
+        with Progress(total, "camera centres", unit="step", stream=self.stream) as bar:
             found = estimate_offsets(
                 self.ds, self.bound.tracer, views, self.cfg.mask_threshold, centres.world(),
                 progress=bar.update, env=self.rays.env, space=self.cfg.loss,
