@@ -53,11 +53,6 @@ class Fit:
                 "loss: srgb420 (the frames are JPEGs with 4:2:0 chroma: luma per pixel, "
                 "chroma per 2 x 2 block as the file stored it)\n"
             )
-        if chosen == "jpeg" and not self.ds.chroma_halved():
-            raise ClrefractError(
-                f"{self.ds.root}: --loss jpeg compares with what JPEG files with 4:2:0 chroma "
-                "stored, and not every training frame is one"
-            )
         cfg.loss = chosen  # recorded in config.toml
         if cfg.loss in BLOCK_CHROMA:  # the blocks' colour as stored, not the decoder's smear
             self.ds.train_chroma = "stored"
