@@ -20,7 +20,6 @@ import numpy as np
 from .calibrate import read_json, write_json
 from .dataset import box_of
 from .errors import ClrefractError
-from .loss import BLOCK_CHROMA
 from .view_offsets import estimate_offsets, train_indices
 
 
@@ -43,7 +42,7 @@ def refine_positions(dataset, run, write: bool = False, runtime=None) -> dict:
     source = ds.root / ds.scene.train
     doc = read_json(source) if write else None  # unreadable: refused before any work
     model = load_model(run, ds, notes, runtime=runtime, cfg=cfg)
-    if cfg.loss in BLOCK_CHROMA:  # as the run was fitted: colour per block, as stored
+    if cfg.loss == "srgb420":  # as the run was fitted: colour per block, as stored
         ds.train_chroma = "stored"
     offsets = estimate_offsets(ds, model.tracer, threshold=cfg.mask_threshold, space=cfg.loss)
     moved = np.array([v.offset_mm for v in offsets])

@@ -51,8 +51,7 @@ def envmap_lookup_jacobian(env: EnvMap, directions: np.ndarray):
     return rad, jac
 
 
-SPACES = ("srgb", "srgb420", "jpeg", "linear")
-BLOCK_CHROMA = ("srgb420", "jpeg")  # the spaces that compare colour per 2 x 2 block, as stored
+SPACES = ("srgb", "srgb420", "linear")
 
 
 def srgb(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -83,11 +82,6 @@ def photometric_loss(
     sRGB values' luma per ray and their chroma by the mean of each run of 4 rays (an aligned
     2 x 2 pixel block): all that a JPEG with 4:2:0 chroma subsampling keeps of the colours,
     so the decoder's smeared chroma at the object's edges is not fitted as refraction;
-    "jpeg" compares as srgb420, but against the image nearest the render that the frame's
-    JPEG file allows (jpeg.py), where target carries, after its 3 columns of radiance, the
-    rays' gains (3: exposure times white balance) and their macroblocks' coefficient bins
-    (jpeg.COLUMNS; the gradient is taken with that image held, as the gradient of a
-    distance to a convex set is); with 3 columns (a blurred phase) it is srgb420;
     dark: (n,) rays that render black (trapped or non-finite), as the renderer draws them:
     radiance 0 and no adjoint. Were they left out, trapping a badly rendered ray would
     lower the loss.
@@ -105,9 +99,6 @@ def photometric_loss(
     if dark is not None:
         rad, jac = np.where(dark[:, None], 0.0, rad), np.where(dark[:, None, None], 0.0, jac)
     wgt = np.ones(len(v)) if weight is None else np.asarray(weight, np.float64)
-    if space == "jpeg":
-        target = file_consistent(rad, target) if np.shape(target)[1] > 3 else target
-        space = "srgb420"
     if space in ("srgb", "srgb420"):
         enc, denc = srgb(rad)
         resid = (enc - srgb(np.asarray(target, np.float64))[0]) * wgt[:, None]
@@ -137,18 +128,6 @@ def photometric_loss(
         dres = 2 * resid / n
     dj_dd = np.einsum("nc,nck->nk", dres, jac)
     return loss, velocity_adjoint(dj_dd, d, speed), rad
-
-
-def file_consistent(rad: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """(n, 3) radiance: the image nearest the rendered `rad` that the frames' files allow,
-    target's gains and bins as photometric_loss's "jpeg" takes them."""
-    from .imageio import srgb_to_linear
-    from .jpeg import consistent
-
-    gain = target[:, 3:6]
-    levels = srgb(rad / gain)[0] @ YCC.T * 255
-    nearest = consistent(levels, target[:, 6:]) @ np.linalg.inv(YCC).T / 255
-    return srgb_to_linear(np.clip(nearest, 0.0, 1.0)) * gain
 
 
 def velocity_adjoint(dj_dd: np.ndarray, d: np.ndarray, speed: np.ndarray) -> np.ndarray:

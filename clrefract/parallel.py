@@ -27,7 +27,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ClrefractError
-from .jpeg import MB
 from .limits import host_cores
 
 # variables that MPI launchers set in each process they start (OpenMPI, MPICH/Hydra and
@@ -191,8 +190,8 @@ class ShardedEngine:
         n, c = len(origins), self.chunks
         if group > 1 and (n // group) % c:
             raise ValueError(f"{n // group} ray groups do not split into {c} chunks")
-        # fixed by the batch alone, not by the ranks; whole blocks of the srgb420 and jpeg losses
-        unit = {"srgb420": 4, "jpeg": MB * MB}.get(self.engine.loss_space, 1) if group == 1 else 1
+        # fixed by the batch alone, not by the ranks; whole blocks of the srgb420 loss
+        unit = 4 if group == 1 and self.engine.loss_space == "srgb420" else 1
         edges = np.arange(c + 1) * (n // unit) // c * unit
         edges[-1] = n
         n_par = len(self.engine.field.data())

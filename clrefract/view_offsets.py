@@ -25,7 +25,7 @@ from .cameras import Camera, load_transforms
 from .dataset import Dataset, holdout_split
 from .envmap import EnvMap
 from .imageio import YCC
-from .loss import BLOCK_CHROMA, srgb
+from .loss import srgb
 from .tracer import renders_black
 
 GROW_PX = 3  # the object's pixels grown by this: a shift of up to MAX_SHIFT_PX stays inside
@@ -90,7 +90,7 @@ class ViewProblem:
                  space: str = "srgb"):  # fmt: skip
         rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
         pad = int(np.ceil(3 * max(BLUR_PX)))  # the blur's reach
-        self.blocks = space in BLOCK_CHROMA  # colour per 2 x 2 block, as the file stored it
+        self.blocks = space == "srgb420"  # colour per 2 x 2 block, as the file stored it
         r0, r1 = aligned(rows[0] - pad, rows[-1] + pad + 1, cam.height, self.blocks)
         c0, c1 = aligned(cols[0] - pad, cols[-1] + pad + 1, cam.width, self.blocks)
         self.shape = (r1 - r0, c1 - c0)

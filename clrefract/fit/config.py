@@ -430,9 +430,7 @@ HELP = {
     "loss": "colour space of the loss: auto (srgb420 where every training frame is a JPEG "
     "with 4:2:0 chroma, else srgb); srgb (encoded and clipped, as the test metrics); "
     "srgb420: luma per pixel, chroma per 2 x 2 block (photographs stored as JPEG with 4:2:0 "
-    "chroma subsampling, as phones and most cameras write them); jpeg: as srgb420, once "
-    "the environment is sharp against the image nearest the render that each 4:2:0 JPEG "
-    "file allows (its DCT coefficients within their quantisation bins); linear radiance",
+    "chroma subsampling, as phones and most cameras write them); linear radiance",
     "queues": "command queues the batch is split across",
     "lanes": "rays per work-item (0: the device's default)",
     "device": "OpenCL device: 'P:D' index or a name substring; under MPI a comma-separated "
@@ -479,7 +477,7 @@ CHOICES = {
     "refit": ("best", "step"),
     "adjoint": ADJOINTS,
     "precision": ("float32", "float64"),
-    "loss": ("auto", "srgb", "srgb420", "jpeg", "linear"),
+    "loss": ("auto", "srgb", "srgb420", "linear"),
     "register": ("auto", "on", "off"),
     "interior": ("auto", "constant", "quadratic"),
     "camera_centres": ("auto", "recorded", "fitted"),

@@ -33,13 +33,8 @@ class Objective:
 
     def _compared(self, idx: np.ndarray, group: int = 1) -> np.ndarray:
         """The rays that stand for idx: under the srgb420 loss, whole 2 x 2 blocks (as many
-        rays), under the jpeg loss whole macroblocks, unless they come in larger blocks
-        already."""
-        if group > 1:
-            return idx
-        if self.space == "jpeg":
-            return self.rays.macroblocks(idx)
-        return self.rays.chroma_blocks(idx) if self.space == "srgb420" else idx
+        rays), unless they come in larger blocks already."""
+        return self.rays.chroma_blocks(idx) if self.space == "srgb420" and group == 1 else idx
 
     def render(self, tracer, idx: np.ndarray) -> tuple[float, np.ndarray]:
         """The loss of rays idx against the sharp environment (forward pass only), and the
@@ -66,13 +61,9 @@ class Objective:
         r = self.rays
         idx = self._compared(idx, group)
         env, targets = r.blurred(it) if it is not None else (r.env, r.rgb)
-        compared = targets[idx]
-        if self.space == "jpeg" and group == 1 and targets is r.rgb:  # sharp: the files' bins
-            compared = np.hstack([compared, r.jpeg_columns(idx)])
         res = engine.loss_and_grad(
-            self.origins(idx), r.dirs[idx], compared, env, r.weights[idx], group
+            self.origins(idx), r.dirs[idx], targets[idx], env, r.weights[idx], group
         )
-        res.rays = idx
         if self.centres is not None and step is not None and res.origin_grad is not None:
             self.centres.step(idx, res.origin_grad, step)
         return res

@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 
-from ..jpeg import MB, columns, read_bins
 from .config import FitConfig
 
 
@@ -103,7 +102,6 @@ class TrainingRays:
         self._marked = None
         self._marked_in_pool = None
         self._blurred: dict[float, tuple] = {}
-        self._bins = None  # each training frame's jpeg.JpegBins, read when first needed
 
     def masks(self) -> list:
         """Each training view's refraction mask: the user's object mask where the capture has
@@ -177,26 +175,6 @@ class TrainingRays:
         """As many rays as idx: the aligned 2 x 2 blocks (a 4:2:0 JPEG's chroma samples) that
         hold its first quarter, for the srgb420 loss."""
         return self.blocks(idx[: max(len(idx) // 4, 1)], 2, aligned=True)
-
-    def macroblocks(self, idx: np.ndarray) -> np.ndarray:
-        """About as many rays as idx: the aligned 16 x 16 blocks (a 4:2:0 JPEG's macroblocks)
-        that hold its first 256th, for the jpeg loss."""
-        return self.blocks(idx[: max(len(idx) // (MB * MB), 1)], MB, aligned=True)
-
-    def jpeg_columns(self, idx: np.ndarray) -> np.ndarray:
-        """(len(idx), 3 + jpeg.COLUMNS): each ray's gain and its coefficient's bins, for rays
-        that come in whole macroblocks (macroblocks)."""
-        from ..dataset import frame_gain
-
-        if self._bins is None:
-            self._bins = [read_bins(self.ds.frame_path(cam)) for cam in self.ds.train]
-        first = idx[:: MB * MB]
-        view = self.view_of[first]
-        local = first - self.view_start[view]
-        w = self.view_shape[view, 1]
-        gains = np.array([frame_gain(cam) for cam in self.ds.train], np.float64)
-        bins = columns(self._bins, view, local // w, local % w)
-        return np.hstack([gains[self.view_of[idx]], bins])
 
     def blurred(self, it: int) -> tuple:
         """The environment and training images at an iteration, blurred alike: sigma pixels

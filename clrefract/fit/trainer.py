@@ -11,7 +11,6 @@ import numpy as np
 from ..calibrate import CENTRES_FILE, run_corrections
 from ..dataset import Dataset, box_of
 from ..errors import ClrefractError
-from ..loss import BLOCK_CHROMA
 from ..resolution import pixel_footprint_mm
 from .binding import Bound, engine_for, forward_settings
 from .centres import CameraCentres, centres_setting
@@ -54,7 +53,7 @@ class Fit:
                 "chroma per 2 x 2 block as the file stored it)\n"
             )
         cfg.loss = chosen  # recorded in config.toml
-        if cfg.loss in BLOCK_CHROMA:  # the blocks' colour as stored, not the decoder's smear
+        if cfg.loss == "srgb420":  # the blocks' colour as stored, not the decoder's smear
             self.ds.train_chroma = "stored"
         self.rays = TrainingRays(self.ds, cfg)
         # settled where a run starts (session.py), else here; recorded in config.toml
