@@ -40,6 +40,7 @@ class GradientResult:
     steps: int
     growth: np.ndarray | None = None  # (n,) max |mu| / |mu(T)| along each ray's backward pass
     origin_grad: np.ndarray | None = None  # (n, 3) dJ/d(ray origin), the directions held
+    rays: np.ndarray | None = None  # (n,) the training rays compared (Objective.loss_and_grad)
 
 
 ADJOINTS = ("continuous", "discrete")

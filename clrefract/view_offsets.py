@@ -229,7 +229,7 @@ def estimate_offsets(
     moved: (len(ds.train), 3) shifts the centres already have (the shifts found are from
     there); progress: called with counts, PROGRESS_PER_VIEW in all for each view (its
     set-up, then each round); env: the panorama, where the caller holds it already (else
-    read); space: the fit's loss space (srgb420 and jpeg: the frames' colour compared per
+    read); space: the fit's loss space (srgb420: the frames' colour compared per
     2 x 2 block, as ds reads it with train_chroma "stored"; any other: sRGB per pixel)."""
     env = ds.envmap() if env is None else env
     views = range(len(ds.train)) if views is None else views

@@ -64,6 +64,7 @@ class Objective:
         res = engine.loss_and_grad(
             self.origins(idx), r.dirs[idx], targets[idx], env, r.weights[idx], group
         )
+        res.rays = idx  # under srgb420, the 2 x 2 blocks, not the rays asked for
         if self.centres is not None and step is not None and res.origin_grad is not None:
             self.centres.step(idx, res.origin_grad, step)
         return res
