@@ -31,7 +31,7 @@ from .tracer import renders_black
 GROW_PX = 3  # the object's pixels grown by this: a shift of up to MAX_SHIFT_PX stays inside
 MAX_SHIFT_PX = 2.0  # bound of a shift, in pixel footprints at the object
 STEP_PX = 0.25  # the central differences' half step, in pixel footprints
-BLUR_PX = (1.0, 0.0)  # the rounds: Gaussian blur of render and photograph (pixels)
+BLUR_PX = (1.0, 0.0)  # the rounds: Gaussian blur of render and photograph (pixels), sharp last
 MAX_NFEV = 12  # least-squares iterations per round
 # a view has converged where its step is shorter than XTOL of its shift (as SciPy's xtol)
 XTOL = 1e-3
@@ -145,8 +145,8 @@ def aligned(lo: int, hi: int, size: int, blocks: bool) -> tuple[int, int]:
     return lo, hi
 
 
-def render(tracer, env: EnvMap, problems: list, shifts: list) -> list:
-    """Each problem's residuals with its camera shifted by the matching shift, all traced in
+def radiance(tracer, env: EnvMap, problems: list, shifts: list) -> list:
+    """Each problem's traced radiance with its camera shifted by the matching shift, all in
     one launch."""
     rays = [p.rays(x) for p, x in zip(problems, shifts, strict=True)]
     if not rays:
@@ -154,21 +154,30 @@ def render(tracer, env: EnvMap, problems: list, shifts: list) -> list:
     res = tracer.trace(np.concatenate([o for o, _ in rays]), np.concatenate([d for _, d in rays]))
     rad = env.lookup(res.direction).astype(np.float64)
     rad[renders_black(res.status)] = 0.0
-    ends = np.cumsum([len(o) for o, _ in rays])[:-1]
-    return [p.residuals(r) for p, r in zip(problems, np.split(rad, ends), strict=True)]
+    return np.split(rad, np.cumsum([len(o) for o, _ in rays])[:-1])
 
 
-def solve_lockstep(tracer, env: EnvMap, problems: list, progress=None) -> np.ndarray:
+def render(tracer, env: EnvMap, problems: list, shifts: list) -> list:
+    """Each problem's residuals with its camera shifted by the matching shift."""
+    rads = radiance(tracer, env, problems, shifts)
+    return [p.residuals(r) for p, r in zip(problems, rads, strict=True)]
+
+
+def solve_lockstep(tracer, env: EnvMap, problems: list, start: list, progress=None):
     """(len(problems), 2) shifts minimising each problem's squared residuals within its
-    bound: Levenberg-Marquardt on central differences (half step STEP_PX footprints), the
-    views that have not converged stepping together, over the rounds of BLUR_PX.
+    bound, and the residuals there in the last round: Levenberg-Marquardt on central
+    differences (half step STEP_PX footprints), the views that have not converged stepping
+    together, over the rounds of BLUR_PX, from no shift, whose radiance is `start`.
     `progress`: called with the count of views each iteration finishes for its round."""
     progress = progress or (lambda n: None)
     x = np.zeros((len(problems), 2))
-    for blur in BLUR_PX:
+    for k, blur in enumerate(BLUR_PX):
         for p in problems:
             p.set_blur(blur)
-        r = render(tracer, env, problems, list(x))
+        if k == 0:
+            r = [p.residuals(s) for p, s in zip(problems, start, strict=True)]
+        else:
+            r = render(tracer, env, problems, list(x))
         cost = np.array([float(v @ v) for v in r])
         damping = np.full(len(problems), DAMPING)
         normal = {}  # each view's Gauss-Newton system at its x: kept until x moves
@@ -204,7 +213,7 @@ def solve_lockstep(tracer, env: EnvMap, problems: list, progress=None) -> np.nda
             if not live:
                 break
         progress(len(live))
-    return x
+    return x, r
 
 
 def footprint_mm(cam: Camera, point) -> float:
@@ -257,13 +266,9 @@ def estimate_offsets(
                 cam, image, weight, mask, env, MAX_SHIFT_PX * foot, foot, space
             )
     probs = list(problems.values())
-    for p in probs:
-        p.set_blur(0.0)
-    before = render(tracer, env, probs, [np.zeros(2)] * len(probs))
-    shifts = solve_lockstep(tracer, env, probs, progress)
-    for p in probs:
-        p.set_blur(0.0)
-    after = render(tracer, env, probs, list(shifts))
+    unshifted = radiance(tracer, env, probs, [np.zeros(2)] * len(probs))
+    before = [p.residuals(r) for p, r in zip(probs, unshifted, strict=True)]  # sharp
+    shifts, after = solve_lockstep(tracer, env, probs, unshifted, progress)  # the sharp round's
     for n, p, x, r0, r1 in zip(problems, probs, shifts, before, after, strict=True):
         at_bound = bool(np.any(np.abs(x) > 0.99 * p.bound))
         if at_bound or np.mean(r1**2) >= np.mean(r0**2):
