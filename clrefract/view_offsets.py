@@ -166,9 +166,12 @@ def render(tracer, env: EnvMap, problems: list, shifts: list) -> list:
 def solve_lockstep(tracer, env: EnvMap, problems: list, start: list, progress=None):
     """(len(problems), 2) shifts minimising each problem's squared residuals within its
     bound, and the residuals there in the last round: Levenberg-Marquardt on central
-    differences (half step STEP_PX footprints), the views that have not converged stepping
-    together, over the rounds of BLUR_PX, from no shift, whose radiance is `start`.
-    `progress`: called with the count of views each iteration finishes for its round."""
+    differences (half step STEP_PX footprints), each step within a trust radius (a footprint
+    or the shift so far at a round's start, twice a step that lowered the cost, a quarter of
+    one that did not), the views that have not converged stepping together, over the
+    rounds of BLUR_PX, from no shift, whose radiance is `start`. The radius: a
+    Gauss-Newton step against a crude field can leap to the bound, where the view is not
+    trusted. `progress`: called with the count of views each iteration finishes for its round."""
     progress = progress or (lambda n: None)
     x = np.zeros((len(problems), 2))
     for k, blur in enumerate(BLUR_PX):
@@ -180,6 +183,7 @@ def solve_lockstep(tracer, env: EnvMap, problems: list, start: list, progress=No
             r = render(tracer, env, problems, list(x))
         cost = np.array([float(v @ v) for v in r])
         damping = np.full(len(problems), DAMPING)
+        radius = np.maximum(np.linalg.norm(x, axis=1) / np.array([p.foot for p in problems]), 1.0)
         normal = {}  # each view's Gauss-Newton system at its x: kept until x moves
         live = list(range(len(problems)))
         for _ in range(MAX_NFEV):
@@ -195,6 +199,7 @@ def solve_lockstep(tracer, env: EnvMap, problems: list, start: list, progress=No
             for i in live:
                 a, g = normal[i]
                 step = np.linalg.solve(a + damping[i] * np.diag(np.maximum(np.diag(a), 1e-300)), -g)
+                step *= min(1.0, radius[i] * problems[i].foot / max(np.linalg.norm(step), 1e-300))
                 trial[i] = np.clip(x[i] + step, -problems[i].bound, problems[i].bound)
             out = render(tracer, env, [problems[i] for i in live], [trial[i] for i in live])
             still = []
@@ -203,9 +208,11 @@ def solve_lockstep(tracer, env: EnvMap, problems: list, start: list, progress=No
                 if float(ri @ ri) < cost[i]:
                     x[i], r[i], cost[i] = trial[i], ri, float(ri @ ri)
                     damping[i] /= 3
+                    radius[i] = max(radius[i], 2 * moved / problems[i].foot)
                     del normal[i]
                 else:
                     damping[i] *= 4
+                    radius[i] = moved / problems[i].foot / 4
                 if moved >= XTOL * (XTOL * problems[i].foot + float(np.linalg.norm(x[i]))):
                     still.append(i)
             progress(len(live) - len(still))
