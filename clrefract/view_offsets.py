@@ -38,6 +38,7 @@ XTOL = 1e-3
 PROBES = ((1, 0), (0, 1), (-1, 0), (0, -1))  # the central differences: +right, +up, -right, -up
 DAMPING = 1e-3  # Levenberg-Marquardt's first damping, relative to the Gauss-Newton diagonal
 MIN_PIXELS = 16  # fewer object pixels: the view is left as it is
+LAUNCH_RAYS = 1 << 21  # the most rays of the views whose bent pixels one launch traces
 PROGRESS_PER_VIEW = 1 + len(BLUR_PX)
 
 
@@ -69,14 +70,36 @@ class ViewOffset:
         }
 
 
-def object_pixels(tracer, cam: Camera, image: np.ndarray, env: EnvMap, threshold: float):
+def bent_pixels(tracer, cams: list) -> list:
+    """Per camera, (H, W) bool: the pixels whose rays the field bends. The views are traced
+    together, in launches of whole views of up to LAUNCH_RAYS rays."""
+    sizes = [cam.width * cam.height for cam in cams]
+    groups, count = [[]], 0
+    for k, n in enumerate(sizes):
+        if groups[-1] and count + n > LAUNCH_RAYS:
+            groups.append([])
+            count = 0
+        groups[-1].append(k)
+        count += n
+    out = []
+    for group in filter(None, groups):
+        rays = [cams[k].rays() for k in group]
+        d = np.concatenate([r[1] for r in rays])
+        bent = np.einsum(
+            "ij,ij->i", tracer.trace(np.concatenate([r[0] for r in rays]), d).direction, d
+        )
+        parts = np.split(bent < 1 - 1e-9, np.cumsum([sizes[k] for k in group])[:-1])
+        out += [b.reshape(cams[k].height, cams[k].width) for k, b in zip(group, parts, strict=True)]
+    return out
+
+
+def object_pixels(cam: Camera, image: np.ndarray, bent: np.ndarray, env: EnvMap, threshold: float):
     """(H, W) bool: the pixels the object can be seen in, recorded pose or shifted: the
-    photograph's refraction mask and the pixels whose rays the field bends, grown by GROW_PX."""
+    photograph's refraction mask and the pixels whose rays the field bends (`bent`), grown
+    by GROW_PX."""
     from .hull import refraction_mask
 
-    o, d = cam.rays()
-    bent = np.einsum("ij,ij->i", tracer.trace(o, d).direction, d) < 1 - 1e-9
-    mask = refraction_mask(cam, image, env, threshold) | bent.reshape(cam.height, cam.width)
+    mask = refraction_mask(cam, image, env, threshold) | bent
     return ndimage.binary_dilation(mask, iterations=GROW_PX)
 
 
@@ -252,17 +275,22 @@ def estimate_offsets(
     progress = progress or (lambda n=1: None)
     indices = train_indices(ds)
     centre = (np.asarray(ds.box.lo) + np.asarray(ds.box.hi)) / 2
-    out, problems = [], {}
-    for n, v in enumerate(views):
-        cam, k = ds.train[v], indices[v]
-        image, weight = ds.frame(cam)
+    cams, frames = [], []
+    for v in views:
+        cam = ds.train[v]
         if moved is not None:
             c2w = cam.c2w.copy()
             c2w[:3, 3] += moved[v]
             cam = replace(cam, c2w=c2w)
+        cams.append(cam)
+        frames.append(ds.frame(ds.train[v]))
         progress()
+    out, problems = [], {}
+    bent = bent_pixels(tracer, cams)
+    for n, (v, cam, (image, weight)) in enumerate(zip(views, cams, frames, strict=True)):
+        k = indices[v]
         image = image.astype(np.float64)
-        mask = object_pixels(tracer, cam, image, env, threshold)
+        mask = object_pixels(cam, image, bent[n], env, threshold)
         foot = footprint_mm(cam, centre)
         out.append(ViewOffset(f"{ds.scene.train}: frames[{k}]", cam.file_path, np.zeros(3),
                               np.zeros(2), foot, 0, 0, 0))  # fmt: skip

@@ -63,9 +63,10 @@ def test_the_true_sphere_takes_each_camera_back(moved):
     counts = []
     offsets = estimate_offsets(ds, tracer, progress=lambda n=1: counts.append(n))
     assert sum(counts) == len(ds.train) * PROGRESS_PER_VIEW  # the bar ends full
-    # the views step together: a view's object pixels, then each round's first residuals
-    # and its iterations' two launches (per view: 20 x 55 or so)
-    assert len(launches) <= len(ds.train) + len(BLUR_PX) * (1 + 2 * MAX_NFEV), launches
+    # the views step together: one launch for every view's bent pixels, then each round's
+    # first residuals and its iterations' two launches (view by view: 20 x 55 or so)
+    assert len(launches) <= 1 + len(BLUR_PX) * (1 + 2 * MAX_NFEV), launches
+    assert launches[0] == sum(cam.width * cam.height for cam in ds.train)
     truth = true_positions(moved)
     before = in_plane_errors(ds.train, truth)
     after = in_plane_errors(ds.train, truth, [v.offset_mm for v in offsets])
@@ -343,3 +344,23 @@ def test_auto_fits_the_centres_of_real_captures_alone(moved):
     for given in ("recorded", "fitted"):
         cfg = FitConfig(camera_centres=given)
         assert centres_setting(cfg, imported, registered=True) == given
+
+
+def test_views_are_traced_together_in_launches_of_whole_views(moved, monkeypatch):
+    """bent_pixels traces whole views together, up to LAUNCH_RAYS rays a launch: with room
+    for two views of 48 x 48 a launch, 16 training views take 8 launches and bend the same pixels
+    as one view at a time (the sphere's outline in each: some, never all)."""
+    from clrefract import view_offsets
+
+    ds = Dataset(moved)
+    tracer = InterfaceTracer(SphereInterface((0.0, 0.0, 0.0), 20.0, 1.5, ds.box), ds.box)
+    alone = [view_offsets.bent_pixels(tracer, [cam])[0] for cam in ds.train]
+    launches = []
+    trace = tracer.trace
+    tracer.trace = lambda o, d: launches.append(len(o)) or trace(o, d)
+    monkeypatch.setattr(view_offsets, "LAUNCH_RAYS", 2 * 48 * 48 + 1)
+    together = view_offsets.bent_pixels(tracer, ds.train)
+    assert len(ds.train) == 16 and launches == [2 * 48 * 48] * 8
+    for a, b in zip(alone, together, strict=True):
+        assert a.shape == (48, 48) and 0 < a.sum() < a.size
+        assert np.array_equal(a, b)
