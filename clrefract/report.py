@@ -237,6 +237,7 @@ def write_fit_report(fit) -> dict:
         "stopped",
         "stopped_without_progress",
         "size_search",
+        "quasi_newton",
         "final_refit",
         "face_search",
         "narrowing",

@@ -19,14 +19,16 @@ def _axis_matrix(n: int, sigma: float) -> np.ndarray:
     return m
 
 
-def gaussian_nodes(grid: np.ndarray, sigma_cells) -> np.ndarray:
+def gaussian_nodes(grid: np.ndarray, sigma_cells, transpose: bool = False) -> np.ndarray:
     """`grid` (3-D) smoothed by a Gaussian of sigma_cells nodes (a number, or one per axis),
     its edges extended by their nearest node: `gaussian_filter(grid, sigma_cells,
-    mode="nearest")`. An axis of sigma 0 is left as it is."""
+    mode="nearest")`. An axis of sigma 0 is left as it is. transpose: the smoothing's
+    transpose (the edges make it differ), which carries a gradient back through it."""
     sig = np.broadcast_to(np.asarray(sigma_cells, np.float64), (grid.ndim,))
     out = np.asarray(grid, np.float64)
     for axis in range(grid.ndim):
         if sig[axis] > 1e-15:  # as SciPy: no smoothing along an axis of sigma 0
             m = _axis_matrix(out.shape[axis], round(float(sig[axis]), 12))
+            m = m.T if transpose else m
             out = np.moveaxis(np.tensordot(m, out, axes=([1], [axis])), 0, axis)
     return np.ascontiguousarray(out)

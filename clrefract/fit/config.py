@@ -103,6 +103,11 @@ class FitConfig:
     # a second smoothing beside descent_sigma's, narrowing geometrically from it to this over
     # the first half of the iterations (0: none): coarse to fine, on the grid's own nodes
     descent_sigma_final: float = 0.0
+    # a graded medium's descent: at most this many evaluations of L-BFGS on
+    # quasi_newton_batches training batches drawn once, from its best grid, kept where the
+    # held-out views prefer it (fit/quasi_newton.py; 0: none)
+    quasi_newton: int = 0
+    quasi_newton_batches: int = 12
     keep_growth: float = 10.0
     grad_sigma: tuple = (3.0, 6.0, 12.0)
     line_steps: tuple = (0.003, 0.01, 0.03, 0.1)
@@ -246,6 +251,9 @@ class FitConfig:
             )
         if not (self.lr_max >= 0 and math.isfinite(self.lr_max)):
             raise ClrefractError(f"lr_max must be at least 0, got {self.lr_max}")
+        for name in ("quasi_newton", "quasi_newton_batches"):
+            if getattr(self, name) < 0:
+                raise ClrefractError(f"{name} must be at least 0, got {getattr(self, name)}")
         for name in ("descent_sigma", "descent_sigma_final"):
             mm = getattr(self, name)
             if not (mm >= 0 and math.isfinite(mm)):
@@ -375,6 +383,11 @@ HELP = {
     "descent_sigma_final": "descent: a second smoothing of the gradient, each its own step, "
     "narrowing geometrically from descent_sigma to this, mm (at least 1.25 cells), over the "
     "first half of the iterations (0: none)",
+    "quasi_newton": "graded descent: at most this many evaluations of L-BFGS from its best "
+    "grid on quasi_newton_batches training batches drawn once, in coordinates smoothed over "
+    "octaves, kept where the held-out views prefer it (0: none; a voxel grid's descent and a "
+    "hash grid's that follows one: 32)",
+    "quasi_newton_batches": "graded descent: the quasi-Newton finish's rays, in batches",
     "keep_growth": "line search: keep the rays whose adjoint grows at most this factor",
     "grad_sigma": "line search: smooth the shape gradient over these scales, cells (each "
     "weighted by its square)",

@@ -16,6 +16,7 @@ from .distil import fit_to_field
 from .finishes import face_offsets, size_index_search
 from .kinds import KINDS, guide_config, guide_kind, make_field
 from .linesearch import level_set_step
+from .quasi_newton import quasi_newton_finish
 from .rays import blur_at
 
 # a refit starts where the grid is: its Adam rates a tenth of a fresh distillation's
@@ -317,6 +318,26 @@ class SmoothedDescent(AdamSteps):
             return
         fit.out.write_config(cfg)
 
+    def finish(self, fit) -> dict:
+        """As AdamSteps.finish, a graded medium's grid polished first (quasi_newton.py)."""
+        did = self.polish(fit)
+        if did.get("quasi_newton", {}).get("kept"):
+            fit.best.params = fit.bound.params.copy()
+            fit.best.loss = did["quasi_newton"]["held_out_loss"]["after"]
+        return {**did, **super().finish(fit)}
+
+    def polish(self, fit, params=None) -> dict:
+        """The quasi-Newton finish of the nodes' best grid (or `params`), where the kind
+        calibrates its descent and cfg.quasi_newton asks for one; the nodes are left at the
+        grid it keeps."""
+        bound, kind, eta_max = self.nodes(fit)
+        best = fit.best.params if fit.best.params is not None else bound.params
+        params = best if params is None else params
+        if not (kind.calibrates_descent and fit.cfg.quasi_newton):
+            return {}
+        sigma = sigma_at(fit.cfg, fit.cfg.iterations, float(np.max(bound.field.spacing)))
+        return quasi_newton_finish(fit, bound, kind, eta_max, params.copy(), sigma)
+
     def _calibrate(self, fit, bound, kind, eta_max, direction, n: int, grid_rate: float) -> float:
         """The run's rate, of grid_rate / 4^k (k = 0 to CALIBRATION_STEPS), kept in
         config.toml with grid_rate as its lr_max: grid_rate itself unless its first step
@@ -509,8 +530,15 @@ class GuidedDescent(FollowsGuide, SmoothedDescent):
         it, params = best.iteration, best.params
         if params is None:
             it, params = fit.it, self.guide.params.copy()
-        if it == 0:
-            return {}  # the grid holds the start's fit already
+        last = self.guide.params.copy()
+        polished = self.polish(fit, params)
+        if polished.get("quasi_newton", {}).get("kept"):
+            params = fit.best.params = self.guide.params.copy()
+            fit.best.loss = polished["quasi_newton"]["held_out_loss"]["after"]
+        elif it == 0:
+            if polished:  # the guide back at its last step, where --resume goes on
+                self.guide.set_params(last, fit.it)
+            return polished  # the grid holds the start's fit already
         t0 = time.perf_counter()
         start = fit.bound.params.copy()
         before = fit.objective.held_out_loss(fit.bound.tracer)
@@ -524,7 +552,10 @@ class GuidedDescent(FollowsGuide, SmoothedDescent):
             device=fit.distil_device(),
         )
         fit.bound.set_params(fit.field.data(), fit.it)
-        self.guide.field.set_data(self.guide.params)
+        if polished:
+            self.guide.set_params(last, fit.it)
+        else:
+            self.guide.field.set_data(self.guide.params)
         after = fit.objective.held_out_loss(fit.bound.tracer)
         kept = after <= before
         if not kept:
@@ -534,13 +565,14 @@ class GuidedDescent(FollowsGuide, SmoothedDescent):
                 f"the start's ({after:.4g} against {before:.4g}): keeping the start's\n"
             )
         return {
+            **polished,
             "final_refit": {
                 "iteration": it,
                 "distilled_rms": rms,
                 "held_out_loss": {"start": before, "refit": after},
                 "kept": kept,
                 "seconds": time.perf_counter() - t0,
-            }
+            },
         }
 
 

@@ -20,6 +20,7 @@ class Tag:
     VALIDATION = (11,)  # the held-out batch
     SIZE_SEARCH = (2, 3000)  # the size and index search's mask rays
     CALIBRATION = (13,)  # the mask rays that choose a descent's rate
+    QUASI_NEWTON = (17,)  # the rays of the quasi-Newton finish
 
     @staticmethod
     def line_step(it: int) -> tuple:
@@ -53,11 +54,11 @@ def marked_rays(masks: list) -> np.ndarray:
 
 
 def batch_indices(
-    cfg: FitConfig, it: int, pool: np.ndarray, marked: np.ndarray | None = None
+    cfg: FitConfig, it, pool: np.ndarray, marked: np.ndarray | None = None
 ) -> np.ndarray:
-    """Training rays of an iteration, from `pool`: a share from `marked` (the masks' rays in
-    the pool), the rest from all of it."""
-    rng = np.random.default_rng([cfg.seed, it])
+    """Training rays of an iteration (or of a tag, a tuple), from `pool`: a share from
+    `marked` (the masks' rays in the pool), the rest from all of it."""
+    rng = np.random.default_rng([cfg.seed, *np.atleast_1d(it)])
     size = min(cfg.batch, len(pool))
     if marked is None or len(marked) < 16 or cfg.mask_share <= 0:
         return pool[rng.integers(0, len(pool), size=size)]
@@ -143,6 +144,15 @@ class TrainingRays:
         """A batch of training rays that depends only on (seed, tag)."""
         rng = np.random.default_rng([self.cfg.seed, *tag])
         return self.pool[rng.integers(0, len(self.pool), size=min(self.cfg.batch, len(self.pool)))]
+
+    def drawn_batches(self, count: int, tag: tuple = Tag.QUASI_NEWTON) -> np.ndarray:
+        """count training batches (no more than the pool holds) drawn once, as the
+        iterations draw theirs."""
+        count = max(1, min(count, len(self.pool) // self.cfg.batch))
+        marked = self.marked_pool() if self.cfg.mask_share > 0 else None
+        return np.concatenate(
+            [batch_indices(self.cfg, (*tag, k), self.pool, marked) for k in range(count)]
+        )
 
     def batch(self, it: int) -> tuple[np.ndarray, int]:
         """An iteration's training rays, and the side of the pixel blocks they come in."""
