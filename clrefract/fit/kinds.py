@@ -53,8 +53,8 @@ INTERFACE_DEFAULTS = dict(
 # and 24.89 (on the quick protocol 39.57 for a cluster, 25.95 for the lens; to 1 mm, 37.70
 # and 25.68). The quasi-Newton finish's 32 evaluations on 12 batches (fit/quasi_newton.py),
 # quick graded set, test PSNR from the descent's grid: plume 74.33 -> 76.16 (ceiling 77.73),
-# blob clusters +0.1 to +1.9 dB over runs without it, the lenses and the rod within 0.2 dB
-# (the Luneburg lens's never kept); 96 to 172 s a fit
+# blob clusters +0.1 to +1.1 dB over the last runs without it, the GRIN rod and lens within
+# 0.2 dB (the Luneburg lens's never kept: 28.49 dB, within its runs' spread); 96 to 172 s a fit
 VOXEL_DEFAULTS = dict(
     optimizer="descent",
     lr=5e-3,
