@@ -331,10 +331,10 @@ class SmoothedDescent(AdamSteps):
         calibrates its descent and cfg.quasi_newton asks for one; the nodes are left at the
         grid it keeps."""
         bound, kind, eta_max = self.nodes(fit)
-        best = fit.best.params if fit.best.params is not None else bound.params
-        params = best if params is None else params
         if not (kind.calibrates_descent and fit.cfg.quasi_newton):
             return {}
+        if params is None:
+            params = fit.best.params if fit.best.params is not None else bound.params
         sigma = sigma_at(fit.cfg, fit.cfg.iterations, float(np.max(bound.field.spacing)))
         return quasi_newton_finish(fit, bound, kind, eta_max, params.copy(), sigma)
 

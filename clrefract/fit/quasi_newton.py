@@ -70,8 +70,6 @@ def quasi_newton_finish(fit, bound, kind, eta_max: float, params, finest_mm: flo
     shape = kind.descent_grid(field)
     n = int(np.prod(shape))
     base = np.array(params, np.float64)
-    bound.set_params(base, fit.it)
-    before = fit.objective.held_out_loss(bound.tracer)
     rays = fit.rays.drawn_batches(cfg.quasi_newton_batches)
     box_mm = float(np.max(np.asarray(fit.box.hi) - np.asarray(fit.box.lo)))
     scales = octaves(finest_mm, box_mm)
@@ -93,7 +91,8 @@ def quasi_newton_finish(fit, bound, kind, eta_max: float, params, finest_mm: flo
             raise FloatingPointError("non-finite loss or gradient")
         return loss, grad[:n]
 
-    loss0, g0 = raw(base)
+    loss0, g0 = raw(base)  # leaves the nodes at base
+    before = fit.objective.held_out_loss(bound.tracer)
     if bound.free is not None:
         g0 = np.where(bound.free[:n], g0, 0.0)
     precondition = Preconditioner(shape, field.spacing, scales, g0)
@@ -132,7 +131,12 @@ def quasi_newton_finish(fit, bound, kind, eta_max: float, params, finest_mm: flo
             jac=True,
             method="L-BFGS-B",
             callback=judge,
-            options=dict(maxfun=cfg.quasi_newton, maxiter=cfg.quasi_newton, maxcor=10),
+            # only the budget ends it: a finer grid spreads the gradient over more nodes, and
+            # on the quick Luneburg lens at 128^3 SciPy's default gradient tolerance stopped
+            # it after one iteration
+            options=dict(
+                maxfun=cfg.quasi_newton, maxiter=cfg.quasi_newton, maxcor=10, ftol=0.0, gtol=0.0
+            ),
         )
     finally:
         bar.close()
