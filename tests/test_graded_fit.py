@@ -113,10 +113,16 @@ def test_a_faint_medium_gets_a_rate_of_its_own(tmp_path):
     assert qn["scales_mm"] == [8.0, 16.0, 32.0], qn
     before, after = qn["held_out_loss"]["before"], qn["held_out_loss"]["after"]
     assert qn["kept"] and after < 0.98 * before and result["best_val_loss"] == after, qn
-    assert qn["evaluations"] >= cfg.quasi_newton, qn  # its budget ends it, not a tolerance
     fit = prepare_fit(data, run, cfg, resume=True)
     fit.bound.set_params(VoxelGrid.load(run / "field.npz").data(), fit.it)
     assert fit.objective.held_out_loss(fit.bound.tracer) == pytest.approx(after, rel=1e-5)
+    # a finish whose first step is tiny, as where a fine grid spreads the gradient over many
+    # nodes, ends by its budget (or a line search that finds no lower loss), never by a
+    # tolerance: SciPy's default gtol ended the quick Luneburg lens's at 128^3 after one
+    # iteration
+    fit.cfg.lr, fit.cfg.quasi_newton = 1e-9, 6
+    tiny = fit.optimizer.polish(fit)["quasi_newton"]
+    assert not tiny["stopped"].startswith("CONVERGENCE"), tiny
 
 
 def test_the_default_model_fits_a_gas_plume_whose_masks_hold_no_object(tmp_path, capsys):

@@ -156,6 +156,7 @@ def quasi_newton_finish(fit, bound, kind, eta_max: float, params, finest_mm: flo
             "scales_mm": scales,
             "held_out_loss": {"before": before, "after": best["loss"]},
             "kept": bool(kept),
+            "stopped": str(res.message),  # SciPy's reason: the budget, or a failed line search
             "seconds": time.perf_counter() - t0,
         }
     }
